@@ -1,0 +1,179 @@
+"""Typed configs, one dataclass per concern, with named presets.
+
+Science configs are plain dataclasses (no pydantic at this layer); each field's comment is its documentation.
+Service settings live in ``service/`` (pydantic-settings). ``to_dict``/``from_dict`` give the JSON form saved
+next to outputs so a run can be reproduced.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal, TypeVar
+
+WaterPreset = Literal["none", "clear", "medium", "turbid"]
+Matcher = Literal["auto", "exhaustive", "sequential"]
+
+
+@dataclass
+class SynthConfig:
+    """The synthetic underwater scene generator (``pipeline.scene.synth``)."""
+
+    views: int = 24  # number of camera views
+    width: int = 320  # image width in pixels
+    height: int = 240  # image height in pixels
+    preset: WaterPreset = "medium"  # water type; "none" renders the clean scene as the underwater image too
+    seed: int = 0  # everything (terrain, objects, textures, path jitter) follows from it
+    path: Literal["survey", "lawnmower", "forward"] = "survey"  # survey = lawnmower pass then forward pass
+    altitude: float = 2.0  # m, camera height above the mean seabed on the downward pass
+    fov_deg: float = 60.0  # horizontal field of view
+    supersample: int = 2  # rays per pixel per axis (anti-aliasing)
+    relief: float = 1.0  # scale of the seabed relief (0 = flat seabed at z = 0)
+    n_rocks: int = 14
+    n_corals: int = 10
+    n_points: int = 3000  # true surface points written to sparse_gt/points3D.txt
+    noise_std: float = 0.004  # sensor noise (std in [0, 1] units) added to the underwater image; 0 disables
+
+
+@dataclass
+class SfmConfig:
+    """The pycolmap SfM recipe (``pipeline.sfm``)."""
+
+    matcher: Matcher = "auto"  # auto: see pipeline.sfm.choose_matcher for the rule
+    sequential_overlap: int = 10  # neighbours matched per frame in sequential mode
+    exhaustive_max_images: int = 60  # auto uses exhaustive up to this many images
+    max_image_size: int = 1600  # SIFT works on images downscaled to this longest side
+    max_num_features: int = 8192
+    camera_model: str = "SIMPLE_RADIAL"  # model refined by bundle adjustment before undistortion
+    single_camera: bool = True  # one shared camera for the whole set (one ROV camera)
+    num_threads: int = 2  # fixed rather than -1 so runs are reproducible and polite on 2 cores
+    seed: int = 0
+    min_registered: int = 3  # fewer registered images than this is an error
+
+
+C = TypeVar("C")
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """A config as a JSON-able dict."""
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(cls: type[C], data: dict[str, Any]) -> C:
+    """Build a config from a dict, refusing unknown keys (a typo must not silently fall back to a default)."""
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} fields: {sorted(unknown)}")
+    return cls(**data)
+
+
+__all__ = ["SynthConfig", "SfmConfig", "to_dict", "from_dict", "field"]
+
+
+@dataclass
+class DensifyConfig:
+    """Adaptive density control (``pipeline.splat.densify``): gsplat's ``DefaultStrategy``, 3DGS schedule.
+
+    Iteration counts are those of a 30k-iteration run; ``scaled`` shrinks them for shorter presets. Iterations
+    are 1-based (the first optimiser step is iteration 1), as in graphdeco's loop.
+    """
+
+    refine_start: int = 500  # grow/prune only at iterations strictly after this one
+    refine_stop: int = 15_000  # no growing, pruning or opacity reset from this iteration on
+    refine_every: int = 100  # grow/prune every this many iterations
+    reset_every: int = 3000  # clamp opacities to 2 * prune_opacity every this many iterations
+    pause_after_reset: int = 0  # skip growing/pruning for this many iterations after a reset
+    grow_grad2d: float = 2e-4  # mean screen-space gradient (NDC units) above which a Gaussian grows
+    grow_scale3d: float = 0.01  # max scale (x scene extent) under which a grower is cloned, else split
+    prune_opacity: float = 0.005  # prune Gaussians whose opacity is below this
+    prune_scale3d: float = 0.1  # after the first reset, prune Gaussians larger than this x scene extent
+    max_gaussians: int = 0  # stop growing at this count (0 = no cap); a memory/time guard for CPU runs
+
+    def scaled(self, factor: float) -> DensifyConfig:
+        """The same schedule compressed to ``factor`` times as many iterations (thresholds unchanged)."""
+
+        def s(n: int) -> int:
+            return max(1, round(n * factor))
+
+        return dataclasses.replace(
+            self,
+            refine_start=s(self.refine_start),
+            refine_stop=s(self.refine_stop),
+            refine_every=s(self.refine_every),
+            reset_every=s(self.reset_every),
+            pause_after_reset=round(self.pause_after_reset * factor),
+        )
+
+
+TrainMode = Literal["3dgs"]
+Backend = Literal["auto", "torch", "cpu", "cuda"]
+
+
+@dataclass
+class TrainConfig:
+    """Training (``pipeline.train``). Defaults are graphdeco 3DGS's 30k-iteration recipe."""
+
+    mode: TrainMode = "3dgs"  # "3dgs": plain photometric training, no medium model
+    iterations: int = 30_000
+    seed: int = 0  # view order, random init and densification splits follow from it
+    backend: Backend = "auto"  # rasterizer backend (pipeline.splat.rasterize)
+    downscale: int = 1  # train on images shrunk by this integer factor (area averaging)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # RGB composited behind the Gaussians
+    sh_degree: int = 3  # maximum spherical-harmonics degree
+    sh_degree_interval: int = 1000  # the active SH degree rises by one every this many iterations
+    lr_means: float = 1.6e-4  # initial position learning rate, multiplied by the scene extent
+    lr_means_final: float = 1.6e-6  # final position lr (x extent); exponential decay over `iterations`
+    lr_sh0: float = 2.5e-3  # SH DC (base colour)
+    lr_shN: float = 2.5e-3 / 20  # higher SH bands
+    lr_opacities: float = 0.05  # logit opacities
+    lr_scales: float = 0.005  # log scales
+    lr_quats: float = 0.001  # rotations
+    adam_eps: float = 1e-15
+    ssim_weight: float = 0.2  # loss = (1 - w) * L1 + w * (1 - SSIM)
+    init_opacity: float = 0.1
+    init_scale: float = 1.0  # multiplier on the initial kNN scale
+    random_init_points: int = 20_000  # Gaussians drawn when the scene has no points (gsplat: 100k)
+    random_init_extent: float = 3.0  # half-size of the random-init cube around the cameras, x scene extent
+    checkpoint_every: int = 2000  # write latest checkpoint every this many its (0 = end/cancel only)
+    eval_every: int = 0  # held-out PSNR every this many iterations (0 = at the end only)
+    log_every: int = 100  # log a progress line every this many iterations
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+
+    def __post_init__(self) -> None:
+        # JSON round trips turn the nested config into a dict and the tuple into a list.
+        if isinstance(self.densify, dict):
+            self.densify = from_dict(DensifyConfig, self.densify)
+        self.background = tuple(float(c) for c in self.background)  # type: ignore[assignment]
+        if len(self.background) != 3:
+            raise ValueError(f"background must have 3 components, got {self.background}")
+
+
+def _train_preset(iterations: int, checkpoint_every: int) -> TrainConfig:
+    """A run of ``iterations`` with the 30k schedule (densification, SH warm-up) compressed to fit."""
+    factor = iterations / 30_000
+    return TrainConfig(
+        iterations=iterations,
+        sh_degree_interval=max(1, round(1000 * factor)),
+        densify=DensifyConfig().scaled(factor),
+        checkpoint_every=checkpoint_every,
+    )
+
+
+# fast: a preview (refine 50-1500 every 10, reset every 300, SH +1 every 100);
+# balanced: a third of the paper schedule; paper: graphdeco's 30k recipe unchanged.
+# Copy before editing (`train_preset`), the instances here are shared.
+TRAIN_PRESETS: dict[str, TrainConfig] = {
+    "fast": _train_preset(3_000, checkpoint_every=500),
+    "balanced": _train_preset(10_000, checkpoint_every=1000),
+    "paper": _train_preset(30_000, checkpoint_every=2000),
+}
+
+
+def train_preset(name: str) -> TrainConfig:
+    """A private copy of a named training preset."""
+    if name not in TRAIN_PRESETS:
+        raise ValueError(f"unknown training preset {name!r}; choose from {sorted(TRAIN_PRESETS)}")
+    return from_dict(TrainConfig, to_dict(TRAIN_PRESETS[name]))
+
+__all__ += ["DensifyConfig", "TrainConfig", "TRAIN_PRESETS", "train_preset"]

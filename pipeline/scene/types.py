@@ -1,0 +1,83 @@
+"""Plain scene records shared by the generator, the loaders, SfM and training.
+
+Conventions (fixed for the whole project):
+- Poses are ``cam_from_world`` (COLMAP's): ``x_cam = R @ x_world + t``; camera looks down +z, x right, y down.
+- Intrinsics are PINHOLE: ``fx, fy, cx, cy`` in pixels, with the pixel-centre convention of COLMAP (the centre
+  of the top-left pixel is at (0.5, 0.5)).
+- Depth means camera-space z (what a rasterizer renders), in scene units. The distance along a pixel's ray is
+  ``depth * ray_length_factor(camera)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A PINHOLE camera."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def K(self) -> np.ndarray:  # [3, 3]
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, factor: float) -> Camera:
+        """The same camera for an image resized by ``factor`` (e.g. 0.5 for half size)."""
+        w, h = max(1, round(self.width * factor)), max(1, round(self.height * factor))
+        sx, sy = w / self.width, h / self.height
+        return Camera(w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+
+
+@dataclass
+class View:
+    """One posed image."""
+
+    name: str  # file name relative to the image folder, e.g. "frame_0001.png"
+    camera: Camera
+    R: np.ndarray  # [3, 3] cam_from_world rotation
+    t: np.ndarray  # [3] cam_from_world translation
+    image_path: Path | None = None
+
+    @property
+    def center(self) -> np.ndarray:  # [3] camera centre in world coordinates
+        return -self.R.T @ self.t
+
+    @property
+    def viewmat(self) -> np.ndarray:  # [4, 4] world -> camera
+        m = np.eye(4)
+        m[:3, :3] = self.R
+        m[:3, 3] = self.t
+        return m
+
+
+@dataclass
+class Scene:
+    """Posed views plus sparse points; what a trainer needs."""
+
+    views: list[View]
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [P, 3] world xyz
+    colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [P, 3] in [0, 1]
+    root: Path | None = None
+
+    def view(self, name: str) -> View:
+        for v in self.views:
+            if v.name == name:
+                return v
+        raise KeyError(f"no view named {name!r} in scene {self.root}")
+
+
+def ray_length_factor(camera: Camera) -> np.ndarray:
+    """Per-pixel ratio between distance along the ray and camera-space z.  # [H, W]"""
+    u = (np.arange(camera.width) + 0.5 - camera.cx) / camera.fx
+    v = (np.arange(camera.height) + 0.5 - camera.cy) / camera.fy
+    return np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)

@@ -1,0 +1,1 @@
+"""The Celery worker: one task per pipeline stage. Built in the service issue."""
