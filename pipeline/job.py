@@ -1,0 +1,192 @@
+"""One job = the stages in order, on a job folder. The same functions run from the CLI, a Celery task and tests.
+
+Job folder::
+
+    job/
+      job.json          the options (written once by whoever creates the job)
+      images/           ingest: validated, upright images
+      ingest.json
+      scene/            sfm: images/ (undistorted) + sparse/0 (PINHOLE) + distorted/
+      train/            train: latest.pt checkpoint (resume point), train.json (metrics, speed-vs-error)
+      output/           export: reconstruction.ply (more artefacts as the later stages land)
+      .stages/<stage>.json   completion markers (config hash + result)
+
+A stage's config hash covers its own options and the hashes of the stages before it, so changing an upstream
+option re-runs everything downstream and nothing else. Every stage takes (job_dir, options, context) and
+returns a JSON-able result; :func:`run_job` skips stages whose marker matches.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .stages import config_hash, read_marker, run_marked
+
+log = logging.getLogger(__name__)
+
+STAGES: tuple[str, ...] = ("ingest", "sfm", "train", "export")
+
+
+class JobCancelled(RuntimeError):
+    """The job's ``should_cancel`` said stop; completed stages and checkpoints are kept."""
+
+
+@dataclass
+class JobOptions:
+    """What a user chooses for a job (CLI flags / API form fields)."""
+
+    source: str = ""  # archive file or image folder to ingest
+    preset: str = "fast"  # training preset: fast | balanced | paper
+    mode: str = "3dgs"  # reconstruction mode
+    max_width: int = 400  # images wider than this are trained at an integer downscale (CPU budget)
+    metric_scale: float | None = None  # metres per scene unit, when the user knows it
+    iterations: int | None = None  # override the preset's iteration count (tests, quick looks)
+    seed: int = 0
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> JobOptions:
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown job options: {sorted(unknown)}")
+        return cls(**d)
+
+
+@dataclass
+class StageContext:
+    """Callbacks a runner (CLI, worker) hands to the stages."""
+
+    on_progress: Callable[[str, float, str], None] = lambda stage, fraction, message: None
+    should_cancel: Callable[[], bool] = lambda: False
+    device: str = "cpu"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------- the stages
+
+
+def stage_ingest(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    from .ingest import ingest
+
+    return ingest(opts.source, job).to_json()
+
+
+def stage_sfm(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    from .config import SfmConfig
+    from .sfm import run_sfm
+
+    return run_sfm(job / "images", job / "scene", SfmConfig(seed=opts.seed)).to_dict()
+
+
+def train_config(opts: JobOptions, width: int):
+    """The TrainConfig a job trains with: the preset, its seed, the downscale for ``max_width``."""
+    from .config import train_preset
+
+    cfg = train_preset(opts.preset)
+    if opts.iterations is not None:
+        from .config import _train_preset
+
+        cfg = _train_preset(opts.iterations, checkpoint_every=max(1, opts.iterations // 5))
+    cfg.seed = opts.seed
+    cfg.downscale = max(1, math.ceil(width / opts.max_width))
+    return cfg
+
+
+def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    from .scene.loader import load_images, load_scene
+    from .scene.split import split_views
+    from .stages import atomic_write_json
+    from .train import TrainingCancelled, train
+
+    scene = load_scene(job / "scene")
+    train_views, test_views = split_views(scene.views)
+    cfg = train_config(opts, scene.views[0].camera.width)
+    train_scene = type(scene)(train_views, scene.points, scene.colors, scene.root)
+    images = load_images(train_scene)
+    test_images = load_images(type(scene)(test_views, root=scene.root)) if test_views else []
+
+    def progress(it: int, total: int, metrics: dict) -> None:
+        ctx.on_progress("train", it / max(1, total), f"iteration {it}/{total}")
+
+    try:
+        res = train(train_scene, images, cfg, test_views=test_views, test_images=test_images,
+                    checkpoint_dir=job / "train", on_progress=progress, should_cancel=ctx.should_cancel,
+                    device=ctx.device)
+    except TrainingCancelled as e:
+        raise JobCancelled(str(e)) from e
+    out = {"iterations": res.iteration, "metrics": res.metrics, "history": res.history,
+           "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
+           "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale}
+    atomic_write_json(job / "train" / "train.json", out)
+    return out
+
+
+def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    from .checkpoint import load_checkpoint
+    from .splat.ply import export_ply
+
+    state = load_checkpoint(job / "train" / "latest.pt")
+    out = job / "output"
+    out.mkdir(parents=True, exist_ok=True)
+    data = export_ply(state["gaussians"], out / "reconstruction.ply")
+    return {"reconstruction.ply": len(data)}
+
+
+STAGE_FUNCTIONS: dict[str, Callable[[Path, JobOptions, StageContext], dict]] = {
+    "ingest": stage_ingest, "sfm": stage_sfm, "train": stage_train, "export": stage_export,
+}
+# Which options each stage depends on (beyond the stages before it).
+STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
+    "ingest": ("source",), "sfm": ("seed",), "train": ("preset", "mode", "max_width", "iterations", "seed"),
+    "export": (),
+}
+
+
+def stage_config(opts: JobOptions, stage: str) -> dict:
+    """What a stage's marker hash covers: its options and the chain of the stages before it."""
+    i = STAGES.index(stage)
+    upstream = config_hash(stage_config(opts, STAGES[i - 1])) if i else None
+    return {"stage": stage, "upstream": upstream, **{k: getattr(opts, k) for k in STAGE_OPTIONS[stage]}}
+
+
+def run_stage(job: Path, stage: str, opts: JobOptions, ctx: StageContext | None = None) -> tuple[dict, bool]:
+    """Run one stage unless its marker matches; returns (result, skipped)."""
+    ctx = ctx or StageContext()
+    if ctx.should_cancel():
+        raise JobCancelled(f"cancelled before {stage}")
+    ctx.on_progress(stage, 0.0, "started")
+    result, skipped = run_marked(job, stage, stage_config(opts, stage),
+                                 lambda: STAGE_FUNCTIONS[stage](job, opts, ctx))
+    ctx.on_progress(stage, 1.0, "skipped (already done)" if skipped else "done")
+    return result, skipped
+
+
+def run_job(job: str | Path, opts: JobOptions, ctx: StageContext | None = None,
+            stages: tuple[str, ...] = STAGES) -> dict[str, dict]:
+    """Run the stages in order in ``job``; finished ones (matching markers) are skipped."""
+    job = Path(job)
+    job.mkdir(parents=True, exist_ok=True)
+    (job / "job.json").write_text(json.dumps(opts.to_json(), indent=2))
+    results = {}
+    for stage in stages:
+        results[stage], skipped = run_stage(job, stage, opts, ctx)
+        log.info("stage %s %s", stage, "skipped (marker matches)" if skipped else "done")
+    return results
+
+
+def first_unfinished(job: str | Path, opts: JobOptions) -> str | None:
+    """The stage a retry would start from (None when all are done)."""
+    for stage in STAGES:
+        m = read_marker(job, stage)
+        if m is None or m.get("config_hash") != config_hash(stage_config(opts, stage)):
+            return stage
+    return None
