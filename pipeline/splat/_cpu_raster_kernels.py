@@ -1,0 +1,487 @@
+"""numba kernels: tile binning, front-to-back compositing and its hand-written backward (8x8 tiles).
+
+Data flow (per call; C cameras share one flat list of C * n_tiles tiles):
+1. ``bin_and_pack``: radix depth sort of the visible (camera, Gaussian) items, the tiles each ellipse reaches
+   (exact span per tile row), a parallel stable counting sort by tile, and one packed float32 row per
+   (tile, Gaussian) pair:
+   ``rows[P, 9 + 4] = (mx, my, a, b, c, opacity, log(255 opacity), y0, y1, f0..f3)`` (y0..y1: the image
+   rows of the Gaussian's pixel box, so the kernels only visit the tile rows it can reach; four feature slots,
+   zero-padded, so each kernel is one fused SIMD loop; ``repack_features`` swaps in further channel groups).
+2. ``raster_fwd``: one tile per work item; Gaussians outer, the 64 pixels inner (SIMD). Stores the image, the
+   final transmittance, and for every pair a 64-bit mask of the pixels it was composited at (so the backward
+   never re-decides anything), plus the end of each tile's used pair range.
+3. ``raster_bwd``: back to front per tile (3DGS's T / (1 - alpha) recursion); each pair's gradient
+   ``(d mx, d my, d a, d b, d c, d opacity, |d mx|, |d my|, d f0..f3)`` is added to its item's row in the
+   working thread's own accumulator slice [n_threads, M, 8 + 4] (no races, no atomics, no index_add).
+4. ``reduce_items``: per item, sum the thread slices.
+
+Bit-reproducibility with the torch reference: ``raster_fwd`` is compiled without fastmath and evaluates sigma
+with exactly ``_torch_ref.pair_sigma``'s operation order, so its alpha >= 1/255 decisions match the reference's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import get_thread_id, njit, prange
+
+from pipeline.splat._constants import ALPHA_MAX, CPU_TILE, T_MIN
+from pipeline.splat._numba_math import FASTMATH, fexp
+
+TILE = CPU_TILE
+LANES = TILE * TILE  # 64 pixels per tile, one SIMD-friendly block
+ROW = 9  # packed row prefix: mx, my, a, b, c, opacity, threshold, first and last pixel row of the box
+GROW = 8  # gradient row prefix: mx, my, a, b, c, opacity, |mx|, |my|
+NF = 4  # feature slots per pair (RGB, RGB+ED and ED fit; the backend renders more channels in groups of 4)
+
+_F0 = np.float32(0.0)
+_F1 = np.float32(1.0)
+_HALF = np.float32(0.5)
+_AMAX = np.float32(ALPHA_MAX)
+_TMIN = np.float32(T_MIN)
+
+
+@njit(cache=True)
+def argsort_stable(keys):
+    """Stable argsort of float64 keys (LSD radix sort, 11-bit digits, constant digits skipped): [M] -> [M] int64.
+
+    Same order as a stable comparison sort (ties keep index order), so the reference's torch.sort(stable=True)
+    and this agree exactly; 5x faster than numba's mergesort at 50k keys.
+    """
+    n = keys.shape[0]
+    bits = keys.view(np.uint64)
+    k = np.empty(n, np.uint64)
+    sign = np.uint64(1) << np.uint64(63)
+    for i in range(n):  # order-preserving map of IEEE doubles to unsigned integers
+        k[i] = ~bits[i] if bits[i] & sign else bits[i] | sign
+    idx = np.arange(n)
+    k2, idx2 = np.empty_like(k), np.empty_like(idx)
+    count = np.empty(2049, np.int64)
+    for shift in range(0, 64, 11):
+        sh = np.uint64(shift)
+        count[:] = 0
+        for i in range(n):
+            count[((k[i] >> sh) & np.uint64(2047)) + np.uint64(1)] += 1
+        if count.max() == n:  # every key has the same digit here
+            continue
+        for d in range(2048):
+            count[d + 1] += count[d]
+        for i in range(n):
+            d = (k[i] >> sh) & np.uint64(2047)
+            j = count[d]
+            count[d] = j + 1
+            k2[j], idx2[j] = k[i], idx[i]
+        k, k2 = k2, k
+        idx, idx2 = idx2, idx
+    return idx
+
+
+@njit(inline="always")
+def _ellipse_consts(a, b, c, thr):
+    """Per-Gaussian constants of ``_row_tiles``: (ok, det, 1/a, k = 2 a thr, v_lim, v*)."""
+    det = a * c - b * b
+    if not (det > 0 and a > 0 and c > 0 and thr > 0):
+        return False, 1.0, 1.0, 0.0, 0.0, 0.0
+    return True, det, 1.0 / a, 2.0 * a * thr, np.sqrt(2.0 * thr * a / det), -b * np.sqrt(2.0 * thr / (det * c))
+
+
+@njit(inline="always")
+def _row_tiles(mx, my, b, ok, det, inv_a, k, v_lim, vs, ty, tx0, tx1, width, height):
+    """Tiles [lo, hi] of tile row ty that the ellipse sigma <= thr reaches (empty: hi < lo), within [tx0, tx1].
+
+    Exact x-extent of the ellipse over the row's pixel-centre y-span, with a small margin, so only tiles the
+    ellipse provably misses are dropped (the pixel box alone keeps ~25% more pairs). With u = x - mx,
+    v = y - my and det = ac - b^2: u ranges over (-b v +- sqrt(2 a thr - det v^2)) / a; the upper bound is
+    concave in v with its maximum sqrt(2 thr c / det) at v* = -b sqrt(2 thr / (det c)), the lower bound is its
+    mirror image, so over a v-interval each bound is at v* (if inside) or at the nearer end.
+    """
+    if not ok:
+        return tx0, tx1  # degenerate: keep the whole box row
+    v0 = max(ty * TILE + 0.5 - my, -v_lim)
+    v1 = min(min(ty * TILE + TILE - 1, height - 1) + 0.5 - my, v_lim)
+    if v1 < v0:
+        return tx0, tx0 - 1
+    v = min(max(vs, v0), v1)
+    u_hi = (-b * v + np.sqrt(max(k - det * v * v, 0.0))) * inv_a
+    v = min(max(-vs, v0), v1)
+    u_lo = (-b * v - np.sqrt(max(k - det * v * v, 0.0))) * inv_a
+    margin = 1e-3 + 1e-5 * (abs(u_lo) + abs(u_hi))
+    x_lo = max(int(np.ceil(mx + u_lo - margin - 0.5)), 0)
+    x_hi = min(int(np.floor(mx + u_hi + margin - 0.5)), width - 1)
+    return max(x_lo // TILE, tx0), min(x_hi // TILE, tx1)
+
+
+@njit(parallel=True, cache=True)
+def bin_and_pack(means2d, conics, opacities, thresholds, features, radii, depth_keys, width, height, n_chunks):
+    """Sort and bin visible items into tiles; pack one row per (tile, Gaussian) pair.
+
+    Inputs: means2d [C, N, 2], conics [C, N, 3], opacities [N], thresholds [N] (log(255 o), float32),
+    features [C, N, 4], radii [C, N, 2] int32, depth_keys [C, N] float64.
+    Returns rows [P, 9 + 4] f32, tile_offsets [C * n_tiles + 1] i64, items [M] i64 (c * N + n, depth-sorted per
+    camera) and pair_item [P] i32 (index into items of each pair).
+    """
+    C, N = depth_keys.shape
+    F = NF
+    ntx = (width + TILE - 1) // TILE
+    nty = (height + TILE - 1) // TILE
+    ntile = ntx * nty
+    # 1. visible items, depth-sorted within each camera (stable: ties keep index order, as the reference)
+    n_vis = np.zeros(C, np.int64)
+    for c in prange(C):
+        k = 0
+        for n in range(N):
+            if radii[c, n, 0] > 0 or radii[c, n, 1] > 0:
+                k += 1
+        n_vis[c] = k
+    cam_start = np.zeros(C + 1, np.int64)
+    for c in range(C):
+        cam_start[c + 1] = cam_start[c] + n_vis[c]
+    M = cam_start[C]
+    items = np.empty(M, np.int64)
+    for c in range(C):
+        idx = np.empty(n_vis[c], np.int64)
+        keys = np.empty(n_vis[c], np.float64)
+        k = 0
+        for n in range(N):
+            if radii[c, n, 0] > 0 or radii[c, n, 1] > 0:
+                idx[k] = n
+                keys[k] = depth_keys[c, n]
+                k += 1
+        order = argsort_stable(keys)
+        for i in range(n_vis[c]):
+            items[cam_start[c] + i] = c * N + idx[order[i]]
+    # 2. per item: packed parameter row, and the tile rectangle holding the pixel centres inside
+    #    [m - r, m + r] (the reference's pixel box)
+    item_rows = np.empty((M, ROW + F), np.float32)
+    rect = np.empty((M, 4), np.int64)  # tx0, tx1, ty0, ty1 (inclusive; empty when tx1 < tx0)
+    block = 1024  # items per parallel work item (the backend schedules dynamically, one block at a time)
+    for blk in prange((M + block - 1) // block):
+        for i in range(blk * block, min(M, (blk + 1) * block)):
+            c, n = items[i] // N, items[i] % N
+            item_rows[i, 0] = means2d[c, n, 0]
+            item_rows[i, 1] = means2d[c, n, 1]
+            item_rows[i, 2] = conics[c, n, 0]
+            item_rows[i, 3] = conics[c, n, 1]
+            item_rows[i, 4] = conics[c, n, 2]
+            item_rows[i, 5] = opacities[n]
+            item_rows[i, 6] = thresholds[n]
+            for f in range(F):
+                item_rows[i, ROW + f] = features[c, n, f]
+            mx, my = float(means2d[c, n, 0]), float(means2d[c, n, 1])
+            rx, ry = float(radii[c, n, 0]), float(radii[c, n, 1])
+            x0 = max(int(np.ceil(mx - rx - 0.5)), 0)
+            x1 = min(int(np.floor(mx + rx - 0.5)), width - 1)
+            y0 = max(int(np.ceil(my - ry - 0.5)), 0)
+            y1 = min(int(np.floor(my + ry - 0.5)), height - 1)
+            item_rows[i, 7] = y0
+            item_rows[i, 8] = y1
+            if x1 < x0 or y1 < y0:
+                rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3] = 0, -1, 0, -1
+            else:
+                rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3] = x0 // TILE, x1 // TILE, y0 // TILE, y1 // TILE
+    # 3. tile span of every (item, tile row) once, and per-chunk tile histograms (chunks = consecutive items)
+    row_off = np.empty(M + 1, np.int64)
+    row_off[0] = 0
+    for i in range(M):
+        row_off[i + 1] = row_off[i] + max(rect[i, 3] - rect[i, 2] + 1, 0)
+    span = np.empty((row_off[M], 2), np.int32)  # first, last tile of the row
+    n_chunks = max(1, min(n_chunks, M))
+    n_tiles_all = C * ntile
+    hist = np.zeros((n_chunks, n_tiles_all), np.int64)
+    for k in prange(n_chunks):
+        for i in range(k * M // n_chunks, (k + 1) * M // n_chunks):
+            base = (items[i] // N) * ntile
+            mx, my, b = float(item_rows[i, 0]), float(item_rows[i, 1]), float(item_rows[i, 3])
+            ok, det, inv_a, kk, v_lim, vs = _ellipse_consts(
+                float(item_rows[i, 2]), b, float(item_rows[i, 4]), float(item_rows[i, 6])
+            )
+            e = row_off[i]
+            for ty in range(rect[i, 2], rect[i, 3] + 1):
+                lo, hi = _row_tiles(mx, my, b, ok, det, inv_a, kk, v_lim, vs, ty, rect[i, 0], rect[i, 1], width,
+                                    height)  # fmt: skip
+                span[e, 0], span[e, 1] = lo, hi
+                e += 1
+                for tx in range(lo, hi + 1):
+                    hist[k, base + ty * ntx + tx] += 1
+    # 4. stable counting sort by tile: each chunk fills its slice of every tile, in depth order
+    tile_offsets = np.zeros(n_tiles_all + 1, np.int64)
+    pos = np.empty((n_chunks, n_tiles_all), np.int64)
+    run = 0
+    for t in range(n_tiles_all):
+        tile_offsets[t] = run
+        for k in range(n_chunks):
+            pos[k, t] = run
+            run += hist[k, t]
+    tile_offsets[n_tiles_all] = run
+    P = run
+    pair_item = np.empty(P, np.int32)
+    for k in prange(n_chunks):
+        for i in range(k * M // n_chunks, (k + 1) * M // n_chunks):
+            base = (items[i] // N) * ntile
+            e = row_off[i]
+            for ty in range(rect[i, 2], rect[i, 3] + 1):
+                for tx in range(span[e, 0], span[e, 1] + 1):
+                    t = base + ty * ntx + tx
+                    pair_item[pos[k, t]] = i
+                    pos[k, t] += 1
+                e += 1
+    # 5. pack rows in pair order (sequential writes; the item table is small enough to stay in cache)
+    rows = np.empty((P, ROW + F), np.float32)
+    chunk = 4096
+    for k in prange((P + chunk - 1) // chunk):
+        for p in range(k * chunk, min(P, (k + 1) * chunk)):
+            i = pair_item[p]
+            for f in range(ROW + F):
+                rows[p, f] = item_rows[i, f]
+    return rows, tile_offsets, items, pair_item
+
+
+@njit(inline="always")
+def _tile_pixels(t, ntx, ntile, width, height, px, py, inside):
+    """Pixel-centre coordinates and in-image flags of tile t's 64 lanes; returns (camera, x0, y0)."""
+    c = t // ntile
+    r = t - c * ntile
+    y0 = (r // ntx) * TILE
+    x0 = (r - (r // ntx) * ntx) * TILE
+    for p in range(LANES):
+        x = x0 + (p % TILE)
+        y = y0 + (p // TILE)
+        px[p] = np.float32(x) + _HALF
+        py[p] = np.float32(y) + _HALF
+        inside[p] = x < width and y < height
+    return c, x0, y0
+
+
+@njit(parallel=True, cache=True)
+def repack_features(rows, pair_item, items, features):
+    """A copy of ``rows`` whose feature slots hold another channel group: features [C, N, 4]."""
+    out = rows.copy()
+    N = features.shape[1]
+    P = rows.shape[0]
+    chunk = 4096
+    for k in prange((P + chunk - 1) // chunk):
+        for p in range(k * chunk, min(P, (k + 1) * chunk)):
+            it = items[pair_item[p]]
+            for f in range(NF):
+                out[p, ROW + f] = features[it // N, it % N, f]
+    return out
+
+
+@njit(inline="always")
+def _tile_pixels(t, ntx, ntile, width, height, px, py, inside):
+    """Pixel-centre coordinates and in-image flags of tile t's 64 lanes; returns (camera, x0, y0)."""
+    c = t // ntile
+    r = t - c * ntile
+    y0 = (r // ntx) * TILE
+    x0 = (r - (r // ntx) * ntx) * TILE
+    for p in range(LANES):
+        x = x0 + (p % TILE)
+        y = y0 + (p // TILE)
+        px[p] = np.float32(x) + _HALF
+        py[p] = np.float32(y) + _HALF
+        inside[p] = x < width and y < height
+    return c, x0, y0
+
+
+@njit(parallel=True, cache=True)
+def raster_fwd(rows, tile_offsets, width, height, backgrounds, out, out_t, masks, tile_end):
+    """Composite every tile front to back.
+
+    rows [P, 9 + 4], tile_offsets [T + 1], backgrounds [C, 4] -> out [C, H, W, 4] (with T_final * bg),
+    out_t [C, H, W] final transmittance, masks [P] uint64 (bit p: composited at lane p; pre-zeroed),
+    tile_end [T] (one past the last pair with a non-zero mask).
+    No fastmath: sigma must round exactly as ``_torch_ref.pair_sigma`` does.
+    """
+    ntx = (width + TILE - 1) // TILE
+    ntile = ntx * ((height + TILE - 1) // TILE)
+    for t in prange(tile_offsets.shape[0] - 1):
+        px, py = np.empty(LANES, np.float32), np.empty(LANES, np.float32)
+        inside = np.empty(LANES, np.bool_)
+        c, x0, y0 = _tile_pixels(t, ntx, ntile, width, height, px, py, inside)
+        T = np.ones(LANES, np.float32)
+        live = inside.copy()
+        sig = np.empty(LANES, np.float32)
+        acc = np.zeros((NF, LANES), np.float32)
+        n_live = 0
+        for p in range(LANES):
+            n_live += live[p]
+        end = tile_offsets[t]
+        for j in range(tile_offsets[t], tile_offsets[t + 1]):
+            if n_live == 0:
+                break
+            mx, my, a, b, cc = rows[j, 0], rows[j, 1], rows[j, 2], rows[j, 3], rows[j, 4]
+            op, thr = rows[j, 5], rows[j, 6]
+            f0, f1, f2, f3 = rows[j, ROW], rows[j, ROW + 1], rows[j, ROW + 2], rows[j, ROW + 3]
+            # lanes lo..hi-1: the tile rows inside the Gaussian's pixel box (outside it sigma > thr). Unsigned, so
+            # numba adds no negative-index wraparound and the loops stay SIMD (signed: 8x slower, measured).
+            lo = np.uint64(max(int(rows[j, 7]) - y0, 0) * TILE)
+            hi = np.uint64((min(int(rows[j, 8]) - y0, TILE - 1) + 1) * TILE)
+            hit = 0
+            for p in range(lo, hi):
+                dx = mx - px[p]
+                dy = my - py[p]
+                s = _HALF * (a * dx * dx + cc * dy * dy) + b * dx * dy  # == _torch_ref.pair_sigma
+                s = max(s, _F0)
+                sig[p] = s
+                hit += (s <= thr) & live[p]
+            if hit == 0:
+                continue
+            m = np.uint64(0)
+            n_stop = 0
+            for p in range(lo, hi):
+                s = sig[p]
+                alpha = min(_AMAX, op * fexp(-s))
+                ok = (s <= thr) & live[p]
+                tn = T[p] * (_F1 - alpha)
+                stop = ok & (tn < _TMIN)
+                take = ok & (tn >= _TMIN)
+                w = alpha * T[p] if take else _F0
+                T[p] = tn if take else T[p]
+                live[p] = live[p] & (not stop)
+                m |= np.uint64(take) << p
+                n_stop += stop
+                acc[0, p] += w * f0
+                acc[1, p] += w * f1
+                acc[2, p] += w * f2
+                acc[3, p] += w * f3
+            n_live -= n_stop
+            if m != 0:
+                masks[j] = m
+                end = j + 1
+        tile_end[t] = end
+        for p in range(LANES):
+            if inside[p]:
+                y, x = y0 + p // TILE, x0 + p % TILE
+                out_t[c, y, x] = T[p]
+                for f in range(NF):
+                    out[c, y, x, f] = acc[f, p] + T[p] * backgrounds[c, f]
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def raster_bwd(rows, tile_offsets, tile_end, masks, pair_item, width, height, backgrounds, out_t, v_out, v_alpha,
+               acc):  # fmt: skip
+    """Backward of ``raster_fwd`` (3DGS's back-to-front recursion), one fused SIMD pass per pair.
+
+    v_out [C, H, W, 4] = dL/d(rendered features), v_alpha [C, H, W] = dL/d(rendered alpha) ->
+    acc [n_threads, M, 8 + 4] (pre-zeroed): each thread adds the gradient of every pair it processes to the
+    pair's item row of its own slice (no races, no atomics; ``reduce_items`` sums the slices).
+
+    For pair i at a pixel, with T_i its transmittance in front and B the sum of w_j f_j behind it:
+      dL/dalpha_i = sum_f v_f (f_i T_i - B_f / (1 - alpha_i)) + T_final / (1 - alpha_i) (v_alpha - v . bg)
+      dL/dfeature_i = alpha_i T_i v;  alpha_i = min(0.99, o exp(-sigma)) gives zero gradient when clamped.
+    """
+    ntx = (width + TILE - 1) // TILE
+    ntile = ntx * ((height + TILE - 1) // TILE)
+    for t in prange(tile_offsets.shape[0] - 1):
+        start, end = tile_offsets[t], tile_end[t]
+        if end == start:
+            continue
+        tid = get_thread_id()
+        px, py = np.empty(LANES, np.float32), np.empty(LANES, np.float32)
+        inside = np.empty(LANES, np.bool_)
+        c, x0, y0 = _tile_pixels(t, ntx, ntile, width, height, px, py, inside)
+        T = np.ones(LANES, np.float32)
+        t_fin = np.ones(LANES, np.float32)
+        v_base = np.zeros(LANES, np.float32)  # v_alpha - v . bg
+        vf = np.zeros((NF, LANES), np.float32)
+        buf = np.zeros((NF, LANES), np.float32)
+        for p in range(LANES):
+            if inside[p]:
+                y, x = y0 + p // TILE, x0 + p % TILE
+                T[p] = out_t[c, y, x]
+                t_fin[p] = T[p]
+                vb = v_alpha[c, y, x]
+                for f in range(NF):
+                    vf[f, p] = v_out[c, y, x, f]
+                    vb -= vf[f, p] * backgrounds[c, f]
+                v_base[p] = vb
+        for j in range(end - 1, start - 1, -1):
+            m = masks[j]
+            if m == 0:
+                continue
+            row = pair_item[j]
+            mx, my, a, b, cc = rows[j, 0], rows[j, 1], rows[j, 2], rows[j, 3], rows[j, 4]
+            op = rows[j, 5]
+            f0, f1, f2, f3 = rows[j, ROW], rows[j, ROW + 1], rows[j, ROW + 2], rows[j, ROW + 3]
+            # only the tile rows where this pair was composited (unsigned lanes: see raster_fwd)
+            r0, r1 = 0, TILE
+            while (m >> np.uint64(r0 * TILE)) & np.uint64(255) == 0:
+                r0 += 1
+            while (m >> np.uint64((r1 - 1) * TILE)) & np.uint64(255) == 0:
+                r1 -= 1
+            g_mx, g_my, g_a, g_b, g_c, g_op, ab_x, ab_y = _F0, _F0, _F0, _F0, _F0, _F0, _F0, _F0
+            g0, g1, g2, g3 = _F0, _F0, _F0, _F0
+            for p in range(np.uint64(r0 * TILE), np.uint64(r1 * TILE)):
+                on = np.float32((m >> p) & np.uint64(1))
+                dx = mx - px[p]
+                dy = my - py[p]
+                s = max(_HALF * (a * dx * dx + cc * dy * dy) + b * dx * dy, _F0)
+                vis = fexp(-s)
+                raw = op * vis
+                alpha = min(_AMAX, raw) * on
+                rcp = _F1 / (_F1 - alpha)
+                Tp = T[p] * rcp  # transmittance in front of this Gaussian
+                T[p] = Tp
+                fac = alpha * Tp
+                v0, v1, v2, v3 = vf[0, p], vf[1, p], vf[2, p], vf[3, p]
+                va = t_fin[p] * rcp * v_base[p]
+                va += (f0 * Tp - buf[0, p] * rcp) * v0 + (f1 * Tp - buf[1, p] * rcp) * v1
+                va += (f2 * Tp - buf[2, p] * rcp) * v2 + (f3 * Tp - buf[3, p] * rcp) * v3
+                buf[0, p] += f0 * fac
+                buf[1, p] += f1 * fac
+                buf[2, p] += f2 * fac
+                buf[3, p] += f3 * fac
+                g0 += fac * v0
+                g1 += fac * v1
+                g2 += fac * v2
+                g3 += fac * v3
+                ga = va * on if raw <= _AMAX else _F0  # dL/dalpha, zero where the 0.99 clamp is active
+                g_op += vis * ga
+                vs = -op * vis * ga  # dL/dsigma
+                g_a += _HALF * vs * dx * dx
+                g_b += vs * dx * dy
+                g_c += _HALF * vs * dy * dy
+                gx = vs * (a * dx + b * dy)
+                gy = vs * (b * dx + cc * dy)
+                g_mx += gx
+                g_my += gy
+                ab_x += abs(gx)
+                ab_y += abs(gy)
+            acc[tid, row, 0] += g_mx
+            acc[tid, row, 1] += g_my
+            acc[tid, row, 2] += g_a
+            acc[tid, row, 3] += g_b
+            acc[tid, row, 4] += g_c
+            acc[tid, row, 5] += g_op
+            acc[tid, row, 6] += ab_x
+            acc[tid, row, 7] += ab_y
+            acc[tid, row, GROW] += g0
+            acc[tid, row, GROW + 1] += g1
+            acc[tid, row, GROW + 2] += g2
+            acc[tid, row, GROW + 3] += g3
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def reduce_items(acc, items, v_means2d, v_conics, v_opac, v_feat, absgrad):
+    """Add the per-thread item rows: acc [n_threads, M, 8 + 4] -> v_means2d [C, N, 2], v_conics [C, N, 3],
+    v_opac [C, N], v_feat [C, N, 4], absgrad [C, N, 2] (accumulated into, so channel groups can add up)."""
+    N = v_opac.shape[1]
+    M = items.shape[0]
+    chunk = 1024
+    for k in prange((M + chunk - 1) // chunk):
+        s = np.empty(GROW + NF, np.float32)
+        for i in range(k * chunk, min(M, (k + 1) * chunk)):
+            c, n = items[i] // N, items[i] % N
+            s[:] = _F0
+            for th in range(acc.shape[0]):
+                for q in range(GROW + NF):
+                    s[q] += acc[th, i, q]
+            v_means2d[c, n, 0] += s[0]
+            v_means2d[c, n, 1] += s[1]
+            v_conics[c, n, 0] += s[2]
+            v_conics[c, n, 1] += s[3]
+            v_conics[c, n, 2] += s[4]
+            v_opac[c, n] += s[5]
+            absgrad[c, n, 0] += s[6]
+            absgrad[c, n, 1] += s[7]
+            for f in range(NF):
+                v_feat[c, n, f] = s[GROW + f]
