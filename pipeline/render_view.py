@@ -1,0 +1,118 @@
+"""Render Gaussian parameters from a posed ``View``: the one place turning parameters into rasterizer inputs.
+
+Used by training (every iteration) and by evaluation/export (held-out views, restored images);
+``evaluate_psnr`` scores held-out views.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import torch
+from torch import Tensor, nn
+
+from pipeline.image_losses import pooled_psnr
+from pipeline.scene.types import View
+from pipeline.splat.gaussians import activate, num_sh_bases, sh_degree_of
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view."""
+
+    image: Tensor  # [H, W, 3]
+    alpha: Tensor  # [H, W, 1] accumulated opacity
+    depth: Tensor | None  # [H, W, 1] alpha-normalised expected depth (render_mode "RGB+ED"), else None
+    info: dict[str, Any]  # the rasterizer's bookkeeping (means2d [1, N, 2], radii [1, N, 2], ...)
+
+
+def view_tensors(view: View, device: torch.device) -> tuple[Tensor, Tensor]:
+    """(viewmat [4, 4] world->camera, K [3, 3]) as float32 tensors on ``device``."""
+    viewmat = torch.as_tensor(view.viewmat, dtype=torch.float32, device=device)
+    K = torch.as_tensor(view.camera.K, dtype=torch.float32, device=device)
+    return viewmat, K
+
+
+def render_gaussians(
+    params: nn.ParameterDict | dict[str, Tensor],
+    viewmat: Tensor,  # [4, 4] world -> camera
+    K: Tensor,  # [3, 3]
+    width: int,
+    height: int,
+    *,
+    sh_degree: int,
+    background: Tensor,  # [3]
+    backend: str = "auto",
+    render_mode: Literal["RGB", "RGB+ED"] = "RGB",
+) -> RenderOutput:
+    """Rasterize with SH bands up to ``sh_degree`` (the active degree during warm-up). Differentiable."""
+    from pipeline.splat.rasterize import rasterize  # lazy: numba kernels load on first use
+
+    g = activate(params)
+    colors = g.sh[:, : num_sh_bases(sh_degree)]  # [N, (d+1)^2, 3]
+    out, alpha, info = rasterize(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        colors,
+        viewmat[None],
+        K[None],
+        width,
+        height,
+        sh_degree=sh_degree,
+        backgrounds=background[None],
+        render_mode=render_mode,
+        backend=backend,
+    )
+    depth = out[0, ..., 3:4] if render_mode == "RGB+ED" else None
+    return RenderOutput(image=out[0, ..., :3], alpha=alpha[0], depth=depth, info=info)
+
+
+def render_view(
+    params: nn.ParameterDict | dict[str, Tensor],
+    view: View,
+    *,
+    sh_degree: int | None = None,
+    background: tuple[float, float, float] | Tensor = (0.0, 0.0, 0.0),
+    backend: str = "auto",
+    render_mode: Literal["RGB", "RGB+ED"] = "RGB",
+) -> RenderOutput:
+    """Render ``params`` from ``view`` at the view camera's resolution; ``sh_degree`` defaults to all bands.
+
+    Gradients flow as usual; wrap in ``torch.no_grad()`` for evaluation.
+    """
+    device = params["means"].device
+    viewmat, K = view_tensors(view, device)
+    bg = torch.as_tensor(background, dtype=torch.float32, device=device).reshape(3)
+    degree = sh_degree_of(params) if sh_degree is None else sh_degree
+    return render_gaussians(
+        params,
+        viewmat,
+        K,
+        view.camera.width,
+        view.camera.height,
+        sh_degree=degree,
+        background=bg,
+        backend=backend,
+        render_mode=render_mode,
+    )
+
+
+@torch.no_grad()
+def evaluate_psnr(
+    params: nn.ParameterDict | dict[str, Tensor],
+    views: Sequence[View],
+    targets: Sequence[Tensor],  # [H, W, 3] each, at the views' camera sizes
+    *,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    backend: str = "auto",
+) -> float:
+    """Held-out PSNR from the MSE pooled over all pixels of all views (renders clamped to [0, 1])."""
+    pairs = []
+    for view, target in zip(views, targets, strict=True):
+        out = render_view(params, view, background=background, backend=backend)
+        pairs.append((out.image.clamp(0.0, 1.0), torch.as_tensor(target).to(out.image.device)))
+    return pooled_psnr(pairs)

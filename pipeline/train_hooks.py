@@ -1,0 +1,64 @@
+"""Small callbacks run after every training step: progress, log lines, checkpoints, held-out PSNR.
+
+A hook is ``hook(trainer, metrics)``; it may add keys to ``metrics`` (``eval_hook`` adds ``test_psnr``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from torch import Tensor
+
+from pipeline.render_view import evaluate_psnr
+from pipeline.scene.types import View
+
+if TYPE_CHECKING:
+    from pipeline.train import Trainer
+
+log = logging.getLogger(__name__)
+
+Hook = Callable[["Trainer", dict[str, float]], None]
+ProgressFn = Callable[[int, int, dict[str, float]], None]  # (iteration, total, metrics)
+
+
+def progress_hook(on_progress: ProgressFn) -> Hook:
+    """Report every iteration to the caller (the worker throttles its own status writes)."""
+    return lambda tr, m: on_progress(tr.iteration, tr.cfg.iterations, m)
+
+
+def log_hook(every: int) -> Hook:
+    def hook(tr: Trainer, m: dict[str, float]) -> None:
+        if every > 0 and tr.iteration % every == 0:
+            rate = tr.iteration / max(tr.elapsed_s, 1e-9)
+            log.info("it %d/%d loss %.4f N %d (%.2f it/s)", tr.iteration, tr.cfg.iterations, m["loss"],
+                     int(m["n_gaussians"]), rate)  # fmt: skip
+
+    return hook
+
+
+def checkpoint_hook(every: int, path: Path) -> Hook:
+    """Save every ``every`` iterations (the final save is the caller's, so it is not written twice)."""
+
+    def hook(tr: Trainer, m: dict[str, float]) -> None:
+        if every > 0 and tr.iteration % every == 0 and tr.iteration < tr.cfg.iterations:
+            tr.save(path)
+
+    return hook
+
+
+def eval_hook(every: int, views: Sequence[View], targets: Sequence[Tensor]) -> Hook:
+    """Held-out PSNR every ``every`` iterations and at the end, appended to ``trainer.history`` (the
+    speed-vs-error curve: iteration, training seconds, PSNR)."""
+
+    def hook(tr: Trainer, m: dict[str, float]) -> None:
+        if (every > 0 and tr.iteration % every == 0) or tr.iteration == tr.cfg.iterations:
+            bg, backend = tr.cfg.background, tr.cfg.backend
+            psnr = evaluate_psnr(tr.gaussians, views, targets, background=bg, backend=backend)
+            tr.history.append({"iteration": tr.iteration, "elapsed_s": tr.elapsed_s, "psnr": psnr})
+            m["test_psnr"] = psnr
+            log.info("it %d held-out PSNR %.2f dB", tr.iteration, psnr)
+
+    return hook

@@ -1,0 +1,101 @@
+"""What a training run is set up from: scene extent, target images, schedules, optimisers, initial Gaussians.
+
+Functions of the config and the scene only (no trainer state), so each is testable on its own.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from pipeline.config import TrainConfig
+from pipeline.scene.types import Scene, View
+from pipeline.splat.gaussians import GAUSSIAN_KEYS, init_from_points, init_random
+
+log = logging.getLogger(__name__)
+
+ImageLike = np.ndarray | Tensor  # [H, W, 3] float in [0, 1]
+
+
+def scene_extent(views: Sequence[View]) -> float:
+    """1.1 x the largest distance of a camera centre from their mean (graphdeco ``getNerfppNorm``); 1.0 for
+    a single camera or coincident centres. Scales the position lr and the densification size thresholds."""
+    centres = np.stack([v.center for v in views])  # [V, 3]
+    radius = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) * 1.1
+    return radius if radius > 1e-6 else 1.0
+
+
+def prepare_images(
+    views: Sequence[View], images: Sequence[ImageLike], downscale: int, device: torch.device
+) -> tuple[list[View], list[Tensor]]:
+    """Check images against their cameras and shrink both by ``downscale`` (area averaging).
+    Returns the (rescaled) views and float32 targets [H, W, 3] on ``device``."""
+    if len(views) != len(images):
+        raise ValueError(f"{len(views)} views but {len(images)} images")
+    if downscale < 1:
+        raise ValueError(f"downscale must be >= 1, got {downscale}")
+    out_views, targets = [], []
+    for view, img in zip(views, images, strict=True):
+        t = torch.as_tensor(img, dtype=torch.float32).to(device)
+        cam = view.camera
+        if t.shape != (cam.height, cam.width, 3):
+            raise ValueError(f"image of {view.name!r} is {tuple(t.shape)}, camera says ({cam.height}, {cam.width}, 3)")
+        if downscale > 1:
+            cam = cam.scaled(1.0 / downscale)
+            t = F.interpolate(t.permute(2, 0, 1)[None], size=(cam.height, cam.width), mode="area")[0]
+            t = t.permute(1, 2, 0).contiguous()
+            view = View(view.name, cam, view.R, view.t, view.image_path)
+        out_views.append(view)
+        targets.append(t)
+    return out_views, targets
+
+
+def means_lr(cfg: TrainConfig, extent: float, iteration: int) -> float:
+    """Log-linear decay from ``lr_means`` to ``lr_means_final`` over the run, times the scene extent."""
+    t = min(max(iteration / max(cfg.iterations, 1), 0.0), 1.0)
+    return extent * math.exp((1 - t) * math.log(cfg.lr_means) + t * math.log(cfg.lr_means_final))
+
+
+def active_sh_degree(cfg: TrainConfig, iteration: int) -> int:
+    """SH warm-up: degree 0 for the first interval, +1 per interval, capped at ``cfg.sh_degree``.
+    (``iteration`` is 1-based, so iterations 1..interval-1 use degree 0, as graphdeco's loop.)"""
+    return min(cfg.sh_degree, iteration // max(cfg.sh_degree_interval, 1))
+
+
+def make_optimizers(params: nn.ParameterDict, cfg: TrainConfig, extent: float) -> dict[str, torch.optim.Adam]:
+    """One single-group Adam per Gaussian tensor (gsplat's strategy convention), 3DGS learning rates."""
+    lrs = {
+        "means": cfg.lr_means * extent,
+        "scales": cfg.lr_scales,
+        "quats": cfg.lr_quats,
+        "opacities": cfg.lr_opacities,
+        "sh0": cfg.lr_sh0,
+        "shN": cfg.lr_shN,
+    }
+    return {
+        k: torch.optim.Adam([{"params": [params[k]], "lr": lrs[k], "name": k}], eps=cfg.adam_eps, betas=(0.9, 0.999))
+        for k in GAUSSIAN_KEYS
+    }
+
+
+def initial_gaussians(scene: Scene, cfg: TrainConfig, extent: float, device: torch.device) -> nn.ParameterDict:
+    """From the scene's points when it has more than 3, else random in a cube around the cameras."""
+    kw = {"sh_degree": cfg.sh_degree, "init_opacity": cfg.init_opacity, "init_scale": cfg.init_scale}
+    if len(scene.points) > 3:
+        params = init_from_points(
+            torch.as_tensor(scene.points, device=device), torch.as_tensor(scene.colors, device=device), **kw
+        )
+        log.info("initialised %d Gaussians from scene points", len(scene.points))
+        return params
+    centre = torch.as_tensor(np.stack([v.center for v in scene.views]).mean(0), dtype=torch.float32)
+    half = cfg.random_init_extent * extent
+    gen = torch.Generator().manual_seed(cfg.seed)
+    params = init_random(cfg.random_init_points, centre - half, centre + half, generator=gen, **kw)
+    log.info("scene has no points: %d random Gaussians in a cube of half-size %.3g", cfg.random_init_points, half)
+    return params.to(device)
