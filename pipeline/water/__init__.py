@@ -1,0 +1,55 @@
+"""Water-type adaptation (paper §4 "Scene Adaptive Mechanism"): classifier, index w and adaptive controller.
+
+- :mod:`.features`    pooled image statistics (pure tensor functions)
+- :mod:`.classifier`  eq. 14 MLP and its JSON weights file (shipped in ``pipeline/data``)
+- :mod:`.decision`    ``classify(images) -> WaterDecision``
+- :mod:`.controller`  the paper's rule: learning rates, α, β, medium start
+- :mod:`.sampling`, :mod:`.dataset`, :mod:`.training`  the synthetic training data and ``train_classifier``
+
+Importing this package loads no weights and touches no files; the shipped classifier is read on first use.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from .classifier import WaterClassifier, load_classifier
+from .controller import (
+    WATER_TYPES,
+    ControllerConfig,
+    ControllerSettings,
+    WaterType,
+    controller_settings,
+    medium_start_iteration,
+    water_index,
+)
+from .decision import WaterDecision, classify
+
+if TYPE_CHECKING:
+    from .training import ClassifierTrainConfig
+
+__all__ = [
+    "WATER_TYPES",
+    "ControllerConfig",
+    "ControllerSettings",
+    "WaterClassifier",
+    "WaterDecision",
+    "WaterType",
+    "classify",
+    "controller_settings",
+    "load_classifier",
+    "medium_start_iteration",
+    "train_classifier",
+    "water_index",
+]
+
+
+def train_classifier(out_path: str | Path, seed: int = 0, cfg: ClassifierTrainConfig | None = None) -> dict:
+    """Retrain and write the weights JSON to ``out_path``; returns the metrics (held-out accuracy, confusion, ...).
+
+    The ``dualphys train-classifier`` entry point. See :func:`pipeline.water.training.train_classifier`.
+    """
+    from .training import train_classifier as _train  # renders scenes: keep it out of the import path
+
+    return _train(out_path, seed=seed, cfg=cfg)
