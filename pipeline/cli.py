@@ -93,6 +93,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train_classifier(args: argparse.Namespace) -> int:
+    from .water import train_classifier
+
+    out = args.out or Path(__file__).resolve().parent / "data" / "water_classifier.json"  # the shipped weights
+    metrics = train_classifier(out, seed=args.seed)
+    print(json.dumps(metrics, default=str))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dualphys",
                                 description="Underwater Gaussian splatting with the water modelled out.")
@@ -113,6 +122,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, type=Path)
     s.add_argument("--matcher", default="auto", choices=["auto", "exhaustive", "sequential"])
     s.set_defaults(func=cmd_sfm)
+
+    s = sub.add_parser("train-classifier", help="retrain the water-type classifier on generated scenes")
+    s.add_argument("--out", type=Path, default=None, help="weights file (default: the shipped one)")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_train_classifier)
 
     s = sub.add_parser("demo", help="generate a scene and run the pipeline on it end to end")
     s.add_argument("--out", type=Path, default=Path("demo-out"))
