@@ -7,6 +7,7 @@ Job folder::
       images/           ingest: validated, upright images
       ingest.json
       scene/            sfm: images/ (undistorted) + sparse/0 (PINHOLE) + distorted/
+      water.json        classify: water type, probabilities, index w, controller settings
       train/            train: latest.pt checkpoint (resume point), train.json (metrics, speed-vs-error)
       output/           export: reconstruction.ply (more artefacts as the later stages land)
       .stages/<stage>.json   completion markers (config hash + result)
@@ -30,7 +31,7 @@ from .stages import config_hash, read_marker, run_marked
 
 log = logging.getLogger(__name__)
 
-STAGES: tuple[str, ...] = ("ingest", "sfm", "train", "export")
+STAGES: tuple[str, ...] = ("ingest", "sfm", "classify", "train", "export")
 
 
 class JobCancelled(RuntimeError):
@@ -87,8 +88,33 @@ def stage_sfm(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     return run_sfm(job / "images", job / "scene", SfmConfig(seed=opts.seed)).to_dict()
 
 
+CLASSIFY_IMAGES = 8  # images (evenly spaced by name) the water classifier averages over
+
+
+def stage_classify(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    from .scene.images import read_image
+    from .stages import atomic_write_json
+    from .water import classify
+
+    names = sorted(p for p in (job / "images").iterdir() if p.is_file())
+    pick = names[:: max(1, len(names) // CLASSIFY_IMAGES)][:CLASSIFY_IMAGES]
+    decision = classify([read_image(p) for p in pick]).to_dict()
+    atomic_write_json(job / "water.json", decision)
+    return decision
+
+
+def apply_water_decision(cfg, decision: dict) -> None:
+    """The controller's settings (paper §5) into a TrainConfig's medium section."""
+    m = cfg.medium
+    if not m.water_adaptation:
+        return
+    m.lr_attenuation, m.lr_scattering = decision["lr_attenuation"], decision["lr_scattering"]
+    m.alpha_w, m.beta_w = decision["alpha"], decision["beta"]
+    m.start_fraction = decision["medium_start_fraction"]
+
+
 def train_config(opts: JobOptions, width: int):
-    """The TrainConfig a job trains with: the preset, its seed, the downscale for ``max_width``."""
+    """The TrainConfig a job trains with: the preset, the mode, its seed, the downscale for ``max_width``."""
     from .config import train_preset
 
     cfg = train_preset(opts.preset)
@@ -97,6 +123,7 @@ def train_config(opts: JobOptions, width: int):
 
         cfg = _train_preset(opts.iterations, checkpoint_every=max(1, opts.iterations // 5))
     cfg.seed = opts.seed
+    cfg.mode = opts.mode  # type: ignore[assignment]
     cfg.downscale = max(1, math.ceil(width / opts.max_width))
     return cfg
 
@@ -110,6 +137,8 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     scene = load_scene(job / "scene")
     train_views, test_views = split_views(scene.views)
     cfg = train_config(opts, scene.views[0].camera.width)
+    if cfg.mode != "3dgs" and (job / "water.json").exists():
+        apply_water_decision(cfg, json.loads((job / "water.json").read_text()))
     train_scene = type(scene)(train_views, scene.points, scene.colors, scene.root)
     images = load_images(train_scene)
     test_images = load_images(type(scene)(test_views, root=scene.root)) if test_views else []
@@ -142,11 +171,13 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
 
 STAGE_FUNCTIONS: dict[str, Callable[[Path, JobOptions, StageContext], dict]] = {
-    "ingest": stage_ingest, "sfm": stage_sfm, "train": stage_train, "export": stage_export,
+    "ingest": stage_ingest, "sfm": stage_sfm, "classify": stage_classify, "train": stage_train,
+    "export": stage_export,
 }
 # Which options each stage depends on (beyond the stages before it).
 STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
-    "ingest": ("source",), "sfm": ("seed",), "train": ("preset", "mode", "max_width", "iterations", "seed"),
+    "ingest": ("source",), "sfm": ("seed",), "classify": (),
+    "train": ("preset", "mode", "max_width", "iterations", "seed"),
     "export": (),
 }
 
