@@ -108,7 +108,36 @@ class DensifyConfig:
         )
 
 
-TrainMode = Literal["3dgs"]
+@dataclass
+class MediumConfig:
+    """The water model in training (``pipeline.medium``); modes ``homogeneous`` and ``dualphys``."""
+
+    rgb_attenuation: bool = True  # eq. 5's edge-perception modulation (dualphys); off = homogeneous attenuation
+    multiscale_scattering: bool = True  # eq. 7/8's multi-scale depth-aware backscatter; off = eq. 6
+    water_adaptation: bool = True  # let the water-type classifier set rates, α(w), β(w) and T
+    gamma: float = 0.3  # eq. 5 edge modulation strength γ
+    lam: float = 0.3  # eq. 8 depth-edge modulation λ
+    delta: float = 0.5  # eq. 8 multi-scale modulation δ
+    start_fraction: float = 1 / 3  # the medium switches on after this fraction of iterations (10k of 30k)
+    lr_attenuation: float = 5e-4  # paper §5 base rate of the attenuation model
+    lr_scattering: float = 1e-4  # paper §5 base rate of the scattering model
+    lr_reference_iterations: int = 20_000  # medium iterations the paper's rates are meant for; shorter runs
+    #                                        scale both rates up by reference / actual
+    alpha_w: float = 1.0  # α(w) in L_wat (controller: clear 1.2, turbid 0.8)
+    beta_w: float = 1.0  # β(w) in L_wat (controller: clear 0.8, turbid 1.2)
+    water_factor: float = 1.0  # T in eq. 5
+    init_optical_depth: tuple[float, float, float] = (0.6, 0.3, 0.25)  # β·(median scene depth) at the start
+    losses: tuple[str, ...] = ("ab", "wat", "edge", "ms", "floater")  # enabled terms beyond L_basic (ablation)
+    loss_weights: dict[str, float] = field(default_factory=dict)  # overrides of pipeline.losses.LossWeights
+    max_sh_degree: int = 1  # low-order SH keeps J view-consistent, so range-dependent colour goes to the water
+
+    def __post_init__(self) -> None:
+        # JSON round trips turn tuples into lists.
+        self.init_optical_depth = tuple(float(x) for x in self.init_optical_depth)  # type: ignore[assignment]
+        self.losses = tuple(self.losses)
+
+
+TrainMode = Literal["3dgs", "homogeneous", "dualphys"]
 Backend = Literal["auto", "torch", "cpu", "cuda"]
 
 
@@ -116,7 +145,7 @@ Backend = Literal["auto", "torch", "cpu", "cuda"]
 class TrainConfig:
     """Training (``pipeline.train``). Defaults are graphdeco 3DGS's 30k-iteration recipe."""
 
-    mode: TrainMode = "3dgs"  # "3dgs": plain photometric training, no medium model
+    mode: TrainMode = "3dgs"  # "3dgs": no medium; "homogeneous": eq. 3's global water; "dualphys": eqs. 5-8
     iterations: int = 30_000
     seed: int = 0  # view order, random init and densification splits follow from it
     backend: Backend = "auto"  # rasterizer backend (pipeline.splat.rasterize)
@@ -141,11 +170,16 @@ class TrainConfig:
     eval_every: int = 0  # held-out PSNR every this many iterations (0 = at the end only)
     log_every: int = 100  # log a progress line every this many iterations
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+    medium: MediumConfig = field(default_factory=MediumConfig)  # used by the homogeneous and dualphys modes
 
     def __post_init__(self) -> None:
         # JSON round trips turn the nested config into a dict and the tuple into a list.
         if isinstance(self.densify, dict):
             self.densify = from_dict(DensifyConfig, self.densify)
+        if isinstance(self.medium, dict):
+            self.medium = from_dict(MediumConfig, self.medium)
+        if self.mode not in ("3dgs", "homogeneous", "dualphys"):
+            raise ValueError(f"mode must be 3dgs, homogeneous or dualphys, got {self.mode!r}")
         self.background = tuple(float(c) for c in self.background)  # type: ignore[assignment]
         if len(self.background) != 3:
             raise ValueError(f"background must have 3 components, got {self.background}")
@@ -181,30 +215,5 @@ def train_preset(name: str) -> TrainConfig:
     return from_dict(TrainConfig, to_dict(TRAIN_PRESETS[name]))
 
 __all__ += ["DensifyConfig", "TrainConfig", "TRAIN_PRESETS", "train_preset"]
-
-
-@dataclass
-class MediumConfig:
-    """The water model in training (``pipeline.medium``); modes ``homogeneous`` and ``dualphys``."""
-
-    rgb_attenuation: bool = True  # eq. 5's edge-perception modulation (dualphys); off = homogeneous attenuation
-    multiscale_scattering: bool = True  # eq. 7/8's multi-scale depth-aware backscatter; off = eq. 6
-    water_adaptation: bool = True  # let the water-type classifier set rates, α(w), β(w) and T
-    gamma: float = 0.3  # eq. 5 edge modulation strength γ
-    lam: float = 0.3  # eq. 8 depth-edge modulation λ
-    delta: float = 0.5  # eq. 8 multi-scale modulation δ
-    start_fraction: float = 1 / 3  # the medium switches on after this fraction of iterations (10k of 30k)
-    lr_attenuation: float = 5e-4  # paper §5 base rate of the attenuation model
-    lr_scattering: float = 1e-4  # paper §5 base rate of the scattering model
-    lr_reference_iterations: int = 20_000  # medium iterations the paper's rates are meant for; shorter runs
-    #                                        scale both rates up by reference / actual
-    alpha_w: float = 1.0  # α(w) in L_wat (controller: clear 1.2, turbid 0.8)
-    beta_w: float = 1.0  # β(w) in L_wat (controller: clear 0.8, turbid 1.2)
-    water_factor: float = 1.0  # T in eq. 5
-    init_optical_depth: tuple[float, float, float] = (0.6, 0.3, 0.25)  # β·(median scene depth) at the start
-    losses: tuple[str, ...] = ("ab", "wat", "edge", "ms", "floater")  # enabled terms beyond L_basic (ablation)
-    loss_weights: dict[str, float] = field(default_factory=dict)  # overrides of pipeline.losses.LossWeights
-    max_sh_degree: int = 1  # low-order SH keeps J view-consistent, so range-dependent colour goes to the water
-
 
 __all__ += ["MediumConfig"]

@@ -138,32 +138,41 @@ class LossWeights:
     ssim_weight: float = 0.2
 
 
+def loss_terms(
+    render: Tensor, target: Tensor, J: Tensor, A: Tensor, B: Tensor, B_frac: Tensor, D: Tensor, alpha: Tensor,
+    depth_scale: float, w: LossWeights, alpha_w: float = 1.0, beta_w: float = 1.0,
+    enabled: frozenset[str] = frozenset({"ab", "wat", "edge", "ms", "floater"}),
+) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    """Eq. 13's terms: (raw terms for logging, weighted terms whose sum is L_total).
+
+    Weighted: w1·L_basic, w2·L_ab, w3·L_wat, w4·L_edge, w5·L_ms (+ the floater term); ``enabled`` switches
+    terms off for the loss ablation (L_basic is always on).
+    """
+    raw: dict[str, Tensor] = {"basic": basic_loss(render, target, w.ssim_weight)}
+    raw["ab"] = consistency_loss(A, B_frac, D, depth_scale, w.mu)
+    if "wat" in enabled:
+        raw["attenuation"] = attenuation_prior(J)
+        raw["scattering"] = scattering_prior(B, target, alpha)
+        raw["wat"] = water_adaptive_loss(raw["attenuation"], raw["scattering"], raw["ab"], alpha_w, beta_w,
+                                         w.gamma_wat)
+    if "edge" in enabled:
+        raw["edge"] = edge_loss(B_frac, D, depth_scale, w.lam_edge)
+    if "ms" in enabled:
+        raw["ms"] = multiscale_loss(render, target, w.lam_ms)
+    if "floater" in enabled:
+        raw["floater"] = floater_loss(alpha)
+    weights = {"basic": w.w_basic, "ab": w.w_ab, "wat": w.w_wat, "edge": w.w_edge, "ms": w.w_ms,
+               "floater": w.w_floater}
+    weighted = {k: weights[k] * raw[k] for k in weights if k == "basic" or (k in enabled and k in raw)}
+    return raw, weighted
+
+
 def total_loss(
     render: Tensor, target: Tensor, J: Tensor, A: Tensor, B: Tensor, B_frac: Tensor, D: Tensor, alpha: Tensor,
     depth_scale: float, w: LossWeights, alpha_w: float = 1.0, beta_w: float = 1.0,
     enabled: frozenset[str] = frozenset({"ab", "wat", "edge", "ms", "floater"}),
 ) -> dict[str, Tensor]:
-    """Eq. 13 as a named dict: each term, and "total" = w1·L_basic + w2·L_ab + w3·L_wat + w4·L_edge + w5·L_ms
-    (+ the floater term). ``enabled`` switches terms off for the loss ablation."""
-    out: dict[str, Tensor] = {"basic": basic_loss(render, target, w.ssim_weight)}
-    total = w.w_basic * out["basic"]
-    l_ab = consistency_loss(A, B_frac, D, depth_scale, w.mu)
-    out["ab"] = l_ab
-    if "ab" in enabled:
-        total = total + w.w_ab * l_ab
-    if "wat" in enabled:
-        out["attenuation"] = attenuation_prior(J)
-        out["scattering"] = scattering_prior(B, target, alpha)
-        out["wat"] = water_adaptive_loss(out["attenuation"], out["scattering"], l_ab, alpha_w, beta_w, w.gamma_wat)
-        total = total + w.w_wat * out["wat"]
-    if "edge" in enabled:
-        out["edge"] = edge_loss(B_frac, D, depth_scale, w.lam_edge)
-        total = total + w.w_edge * out["edge"]
-    if "ms" in enabled:
-        out["ms"] = multiscale_loss(render, target, w.lam_ms)
-        total = total + w.w_ms * out["ms"]
-    if "floater" in enabled:
-        out["floater"] = floater_loss(alpha)
-        total = total + w.w_floater * out["floater"]
-    out["total"] = total
-    return out
+    """Eq. 13 as a named dict: every raw term and "total" = w1·L_basic + w2·L_ab + w3·L_wat + w4·L_edge + w5·L_ms
+    (+ the floater term)."""
+    raw, weighted = loss_terms(render, target, J, A, B, B_frac, D, alpha, depth_scale, w, alpha_w, beta_w, enabled)
+    return {**raw, "total": sum(weighted.values())}

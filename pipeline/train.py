@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from pipeline.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.config import TrainConfig, from_dict, to_dict
 from pipeline.image_losses import l1, ssim
+from pipeline.medium.term import MediumTerm
 from pipeline.render_view import RenderOutput, evaluate_psnr, render_gaussians, render_view, view_tensors
 from pipeline.scene.types import Scene, View
 from pipeline.splat.densify import Densifier
@@ -102,8 +103,6 @@ class Trainer:
         *,
         device: torch.device | str = "cpu",
     ) -> None:
-        if cfg.mode != "3dgs":
-            raise ValueError(f"Trainer implements mode '3dgs' only, got {cfg.mode!r}")
         self.cfg = cfg
         self.device = torch.device(device)
         self.views, self.targets = prepare_images(scene.views, images, cfg.downscale, self.device)
@@ -114,6 +113,14 @@ class Trainer:
         self.densifier = Densifier(cfg.densify, scene_scale=self.extent)
         self.densifier.check(self.gaussians, self.optimizers)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)  # [3]
+        self.medium: MediumTerm | None = None
+        self.max_sh_degree = cfg.sh_degree
+        if cfg.mode != "3dgs":
+            # J is rendered premultiplied over black; uncovered pixels see the water's veiling light instead.
+            self.background = torch.zeros(3, device=self.device)
+            self.medium = MediumTerm(cfg.mode, cfg.medium, scene, self.views, self.targets, cfg.iterations,
+                                     self.device)
+            self.max_sh_degree = min(cfg.sh_degree, cfg.medium.max_sh_degree)
         self.cameras = [view_tensors(v, self.device) for v in self.views]  # (viewmat [4,4], K [3,3])
         self.iteration = 0  # iterations completed
         self.elapsed_s = 0.0
@@ -127,22 +134,42 @@ class Trainer:
             self._view_queue = torch.randperm(len(self.views), generator=self._view_gen).tolist()
         return self._view_queue.pop()
 
-    def render(self, i: int, sh_degree: int) -> RenderOutput:
+    def render(self, i: int, sh_degree: int, render_mode: str = "RGB") -> RenderOutput:
         viewmat, K = self.cameras[i]
         cam = self.views[i].camera
         return render_gaussians(self.gaussians, viewmat, K, cam.width, cam.height, sh_degree=sh_degree,
-                                background=self.background, backend=self.cfg.backend)  # fmt: skip
+                                background=self.background, backend=self.cfg.backend,
+                                render_mode=render_mode)  # type: ignore[arg-type]  # fmt: skip
+
+    def medium_on(self, iteration: int) -> bool:
+        return self.medium is not None and self.medium.active(iteration)
 
     def compute_losses(self, out: RenderOutput, i: int) -> dict[str, Tensor]:
-        """Named loss terms for view ``i``; the step sums them once."""
+        """Named, already weighted loss terms for view ``i``; the step sums them once."""
+        if self.medium is not None and self.medium_on(self.iteration + 1):
+            assert out.depth is not None
+            return self.medium.losses(i, out.image, out.alpha, out.depth, self.targets[i])
         return photometric_losses(out.image, self.targets[i], self.cfg.ssim_weight)
+
+    def predict(self, view: View) -> Tensor:
+        """The photo this model predicts for ``view`` (with water in medium modes), clamped. [H, W, 3]"""
+        with torch.no_grad():
+            if self.medium is None or not self.medium_on(self.iteration):
+                out = render_view(self.gaussians, view, sh_degree=self.max_sh_degree, background=self.background,
+                                  backend=self.cfg.backend)
+                return out.image.clamp(0.0, 1.0)
+            out = render_view(self.gaussians, view, sh_degree=self.max_sh_degree, background=self.background,
+                              backend=self.cfg.backend, render_mode="RGB+ED")
+            assert out.depth is not None
+            med, _ = self.medium.apply_camera(view.camera, out.image, out.alpha, out.depth)
+            return med.I[0].permute(1, 2, 0).clamp(0.0, 1.0)
 
     def step(self) -> dict[str, float]:
         """One iteration: render a view, loss, backward, Adam, densification."""
         it = self.iteration + 1
         self.optimizers["means"].param_groups[0]["lr"] = means_lr(self.cfg, self.extent, it)
-        i, sh_degree = self.next_view(), active_sh_degree(self.cfg, it)
-        out = self.render(i, sh_degree)
+        i, sh_degree = self.next_view(), min(active_sh_degree(self.cfg, it), self.max_sh_degree)
+        out = self.render(i, sh_degree, "RGB+ED" if self.medium_on(it) else "RGB")
         self.densifier.pre_backward(self.gaussians, self.optimizers, it, out.info)
         losses = self.compute_losses(out, i)
         loss = sum(losses.values())
@@ -153,6 +180,8 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if self.medium is not None:
+            self.medium.step()
         event = self.densifier.post_backward(self.gaussians, self.optimizers, it, out.info)
         self.iteration = it
         metrics = {"loss": float(loss.detach()), **terms, "n_gaussians": float(len(self.gaussians["means"])),
@@ -194,7 +223,7 @@ class Trainer:
                 "views": self._view_gen.get_state(),
                 "view_queue": list(self._view_queue),
             },
-            "medium": None,  # mode "3dgs" has none; a medium mode stores its modules' and optimisers' state
+            "medium": self.medium.state_dict() if self.medium is not None else None,
         }
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
@@ -218,6 +247,8 @@ class Trainer:
         self.iteration = int(sd["iteration"])
         self.elapsed_s = float(sd["elapsed_s"])
         self.history = list(sd["history"])
+        if self.medium is not None and sd.get("medium") is not None:
+            self.medium.load_state_dict(sd["medium"])
 
     def save(self, path: str | Path) -> Path:
         return save_checkpoint(path, self.state_dict())

@@ -1,0 +1,130 @@
+"""The medium's part of a training step: turn a rendered view (J, alpha, z-depth) into the with-water image,
+score it with the DualPhys losses, and step the medium's own optimiser.
+
+The trainer owns the Gaussians; this object owns the :class:`~pipeline.medium.model.Medium`, its Adam (two
+parameter groups: attenuation and scattering, the controller's learning rates) and the fixed per-scene
+quantities (depth normaliser, per-view ray-length factors). Densification never sees these parameters.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..config import MediumConfig
+from ..losses import LossWeights, basic_loss, loss_terms
+from ..scene.types import Camera, Scene, View, ray_length_factor
+from .model import Medium, MediumOutput
+
+log = logging.getLogger(__name__)
+
+
+def scene_depth_scale(scene: Scene, views: Sequence[View]) -> float:
+    """Median camera-space depth of the sparse points over the given views: the scene's one depth normaliser.
+
+    Falls back to the median camera-to-centroid distance when there are no points.
+    """
+    zs = []
+    pts = np.asarray(scene.points, dtype=np.float64)
+    for v in views:
+        if len(pts):
+            z = (pts @ v.R.T + v.t)[:, 2]
+            zs.append(z[z > 0])
+    z = np.concatenate(zs) if zs else np.zeros(0)
+    if z.size:
+        return float(np.median(z))
+    centres = np.stack([v.center for v in views])
+    return float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1))) or 1.0
+
+
+def _nchw(x: Tensor) -> Tensor:  # [H, W, C] → [1, C, H, W]
+    return x.permute(2, 0, 1)[None]
+
+
+class MediumTerm:
+    """Medium module + optimiser + losses for one training run."""
+
+    def __init__(self, mode: str, cfg: MediumConfig, scene: Scene, views: Sequence[View],
+                 targets: Sequence[Tensor], total_iterations: int, device: torch.device):
+        self.cfg = cfg
+        self.mode = mode
+        self.depth_scale = scene_depth_scale(scene, views)
+        tau = np.asarray(cfg.init_optical_depth)  # β·(typical depth): scale-free starting attenuation
+        binf = torch.stack([t.reshape(-1, 3).median(dim=0).values for t in targets]).median(dim=0).values
+        binf = binf.clamp(0.02, 0.95)
+        self.medium = Medium(
+            mode, rgb_attenuation=cfg.rgb_attenuation, multiscale_scattering=cfg.multiscale_scattering,
+            gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=self.depth_scale,
+            init_beta=tuple(float(x) for x in tau / self.depth_scale),
+            init_binf=tuple(float(x) for x in binf.tolist()),
+        ).to(device)
+        self.medium.water_factor.fill_(cfg.water_factor)
+        self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
+                    for v in views]  # per view [1, 1, H, W]
+        self.start = int(round(cfg.start_fraction * total_iterations))
+        # Short runs scale the schedule: the paper's rates are for ~20k medium iterations.
+        boost = max(1.0, cfg.lr_reference_iterations / max(1, total_iterations - self.start))
+        m = self.medium
+        att = [m.beta_d_raw, m.w] + (list(m.edge.parameters()) if m.edge else [])
+        scat = [m.beta_b_raw, m.binf_raw] + (list(m.multiscale.parameters()) if m.multiscale else [])
+        self.optimizer = torch.optim.Adam([
+            {"params": [p for p in att if p.requires_grad], "lr": cfg.lr_attenuation * boost, "name": "attenuation"},
+            {"params": scat, "lr": cfg.lr_scattering * boost, "name": "scattering"},
+        ], eps=1e-15)
+        self.weights = LossWeights(**cfg.loss_weights) if cfg.loss_weights else LossWeights()
+        log.info("medium %s: depth scale %.3f, starts at iteration %d, lr boost %.1f", mode, self.depth_scale,
+                 self.start, boost)
+
+    def active(self, iteration: int) -> bool:
+        return iteration > self.start
+
+    def apply(self, view_index: int, J: Tensor, alpha: Tensor, depth: Tensor) -> tuple[MediumOutput, Tensor]:
+        """J [H,W,3] premultiplied, alpha [H,W,1], z-depth [H,W,1] → (medium output NCHW, range D [1,1,H,W])."""
+        D = _nchw(depth) * self.ray[view_index]
+        return self.medium(_nchw(J), D, _nchw(alpha)), D
+
+    def apply_camera(self, camera: Camera, J: Tensor, alpha: Tensor, depth: Tensor) -> tuple[MediumOutput, Tensor]:
+        """As :meth:`apply` for any camera (held-out and novel views)."""
+        ray = torch.as_tensor(ray_length_factor(camera), dtype=J.dtype, device=J.device)[None, None]
+        D = _nchw(depth) * ray
+        return self.medium(_nchw(J), D, _nchw(alpha)), D
+
+    def losses(self, view_index: int, J: Tensor, alpha: Tensor, depth: Tensor, target: Tensor) -> dict[str, Tensor]:
+        """Eq. 13's weighted terms for one view (their sum is L_total)."""
+        out, D = self.apply(view_index, J, alpha, depth)
+        enabled = frozenset(self.cfg.losses)
+        _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha),
+                                 self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled)
+        return weighted
+
+    @staticmethod
+    def warmup_loss(image: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
+        """Before the medium switches on, J alone is fitted to the photo (paper §5: medium on at 10k of 30k)."""
+        return basic_loss(_nchw(image), _nchw(target), ssim_weight)
+
+    def step(self) -> None:
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def effective_coefficients(self) -> dict[str, list[float]]:
+        """The global per-channel coefficients (β_D including w_c and T; β_B; B∞) in 1/scene-unit."""
+        m = self.medium
+        with torch.no_grad():
+            bd = (m.w * m.beta_D * m.water_factor).tolist()
+            return {"beta_D": bd, "beta_B": m.beta_B.tolist(), "B_inf": m.B_inf.tolist(),
+                    "depth_scale": self.depth_scale}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"mode": self.mode, "config": asdict(self.cfg), "module": self.medium.state_dict(),
+                "optimizer": self.optimizer.state_dict(), "depth_scale": self.depth_scale}
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        self.medium.load_state_dict(sd["module"])
+        self.optimizer.load_state_dict(sd["optimizer"])
+        self.depth_scale = float(sd["depth_scale"])
