@@ -102,6 +102,13 @@ def cmd_train_classifier(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    from service.embedded import serve
+
+    serve(args.host, args.port, args.data_dir, redis_url=args.redis_url)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dualphys",
                                 description="Underwater Gaussian splatting with the water modelled out.")
@@ -127,6 +134,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=None, help="weights file (default: the shipped one)")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_train_classifier)
+
+    s = sub.add_parser("serve", help="run the API, a worker and beat locally against a Redis on localhost")
+    s.add_argument("--host", default="127.0.0.1")
+    s.add_argument("--port", type=int, default=8000)
+    s.add_argument("--data-dir", type=Path, default=Path("dualphys-data"))
+    s.add_argument("--redis-url", default="redis://127.0.0.1:6379/0")
+    s.set_defaults(func=cmd_serve)
 
     s = sub.add_parser("demo", help="generate a scene and run the pipeline on it end to end")
     s.add_argument("--out", type=Path, default=Path("demo-out"))

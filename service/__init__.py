@@ -1,1 +1,2 @@
-"""The HTTP service (FastAPI). Built in the service issue; see DESIGN.md "Service and worker"."""
+"""The HTTP service: FastAPI app (``service.app:create_app``), settings, job store, uploads, surveys, and the
+embedded runner (``service.embedded.serve``). See docs/SERVICE.md."""

@@ -1,1 +1,2 @@
-"""The Celery worker: one task per pipeline stage. Built in the service issue."""
+"""The Celery worker (``celery -A worker.app``): one task per pipeline stage, survey scans for beat.
+See docs/SERVICE.md."""

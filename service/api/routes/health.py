@@ -1,0 +1,42 @@
+"""/health (the process answers) and /ready (Redis reachable, data disk writable with room). No auth."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+
+from fastapi import APIRouter
+from fastapi.responses import JSONResponse
+
+from service.api.deps import ServicesDep
+from service.api.errors import error_body
+from service.api.schemas.responses import HealthOut, ReadyOut
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/health", response_model=HealthOut, summary="Liveness")
+def health() -> HealthOut:
+    return HealthOut(status="ok")
+
+
+@router.get("/ready", response_model=ReadyOut, summary="Readiness",
+            responses={503: {"description": "not ready: the error body plus the checks"}})
+def ready(services: ServicesDep) -> JSONResponse:
+    s = services.settings
+    redis_ok = services.coord.ping()
+    try:
+        free = shutil.disk_usage(s.data_dir).free
+        with tempfile.TemporaryFile(dir=s.data_dir):
+            writable = True
+    except OSError:
+        free, writable = 0, False
+    body = ReadyOut(status="ready", redis=redis_ok, data_dir_writable=writable, disk_free_bytes=free,
+                    min_free_bytes=s.min_free_bytes)
+    problems = [msg for bad, msg in ((not redis_ok, "Redis is not reachable"),
+                                     (not writable, "the data folder is not writable"),
+                                     (free < s.min_free_bytes, "the data disk is nearly full")) if bad]
+    if not problems:
+        return JSONResponse(body.model_dump())
+    body.status = "not_ready"
+    return JSONResponse({**error_body("not_ready", "; ".join(problems)), **body.model_dump()}, status_code=503)

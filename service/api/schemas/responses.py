@@ -1,0 +1,159 @@
+"""What the API returns."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, Field
+
+from service.jobs import StatusView, pipeline_stages
+from service.manifest import Manifest
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(..., description="stable, machine-readable (docs/SERVICE.md lists them)")
+    message: str
+
+
+class ErrorOut(BaseModel):
+    error: ErrorDetail
+
+
+class StageOut(BaseModel):
+    name: str
+    status: str
+    started_at: float | None
+    finished_at: float | None
+    seconds: float | None
+    attempts: int
+    skipped: bool
+
+
+class JobErrorOut(BaseModel):
+    stage: str | None
+    code: str
+    message: str
+
+
+LIST_CAP = 100  # status stays small however broken an upload was; ingest.json (an artifact) has every entry
+
+
+class IngestOut(BaseModel):
+    images: int
+    skipped: list[dict] = Field(default_factory=list, description="files that looked like images but did not "
+                                                                  f"decode (first {LIST_CAP})")
+    skipped_count: int = 0
+    ignored: list[dict] = Field(default_factory=list, description=f"files that are not images (first {LIST_CAP})")
+    ignored_count: int = 0
+
+
+class RunOut(BaseModel):
+    run_id: str
+    from_stage: str | None
+    queued_at: float
+    finished_at: float | None
+    outcome: str | None
+
+
+class JobOut(BaseModel):
+    id: str
+    state: str = Field(..., description="queued | running | cancelling | done | failed | cancelled")
+    stage: str | None = Field(None, description="the stage running now (or last run)")
+    progress: float = Field(..., ge=0, le=100, description="0-100, never decreases")
+    message: str
+    created_at: float
+    updated_at: float
+    options: dict
+    source: dict
+    survey_id: str | None
+    stages: list[StageOut]
+    error: JobErrorOut | None
+    ingest: IngestOut | None
+    runs: list[RunOut]
+    completed_runs: int
+
+    @classmethod
+    def from_view(cls, v: StatusView) -> JobOut:
+        m: Manifest = v.manifest
+        names = list(pipeline_stages()) + [s for s in m.stages if s not in pipeline_stages()]
+        stages = [StageOut(name=s, **m.stage(s).model_dump()) for s in names]
+        source = {k: val for k, val in m.source.items() if k != "path"}
+        ingest = None
+        if m.ingest is not None:
+            skipped, ignored = m.ingest.get("skipped", []), m.ingest.get("ignored", [])
+            ingest = IngestOut(images=len(m.ingest.get("images", [])), skipped=skipped[:LIST_CAP],
+                               skipped_count=len(skipped), ignored=ignored[:LIST_CAP], ignored_count=len(ignored))
+        return cls(id=m.id, state=v.state, stage=v.stage, progress=v.progress, message=v.message,
+                   created_at=m.created_at, updated_at=m.updated_at,
+                   options={k: val for k, val in m.options.items() if k != "source"}, source=source,
+                   survey_id=m.survey_id, stages=stages, error=JobErrorOut(**m.error.model_dump()) if m.error else None,
+                   ingest=ingest, runs=[RunOut(**r.model_dump()) for r in m.runs], completed_runs=m.completed_runs)
+
+
+class JobList(BaseModel):
+    jobs: list[JobOut]
+    total: int
+    offset: int
+    limit: int
+    next_offset: int | None
+
+
+class LogOut(BaseModel):
+    offset: int
+    next_offset: int = Field(..., description="pass as ?offset= to get what was written since")
+    size: int
+    text: str
+
+
+class ArtifactOut(BaseModel):
+    path: str
+    size: int
+    sha256: str
+    media_type: str
+    url: str
+
+
+class ArtifactList(BaseModel):
+    job_id: str
+    artifacts: list[ArtifactOut]
+
+
+class SubmittedSetOut(BaseModel):
+    set_hash: str
+    name: str
+    images: int
+    job_id: str
+    submitted_at: float
+
+
+class SurveyOut(BaseModel):
+    id: str
+    name: str
+    path: str
+    interval_s: float
+    options: dict
+    origin: str = Field(..., description="api | config")
+    created_at: float
+    last_scan_at: float | None
+    scans: int
+    last_error: str | None
+    sets: list[SubmittedSetOut]
+
+
+class SurveyList(BaseModel):
+    surveys: list[SurveyOut]
+
+
+class ScanQueued(BaseModel):
+    survey_id: str
+    task_id: str
+
+
+class HealthOut(BaseModel):
+    status: str
+
+
+class ReadyOut(BaseModel):
+    status: str = Field(..., description="ready | not_ready")
+    redis: bool
+    data_dir_writable: bool
+    disk_free_bytes: int
+    min_free_bytes: int

@@ -1,0 +1,78 @@
+"""The FastAPI application factory: ``uvicorn --factory service.app:create_app``.
+
+Nothing happens at import: settings are read, Redis connected and the Celery producer built when the app is
+created; folders are made and half-finished uploads swept when it starts.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import anyio
+import redis
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+
+from .api.deps import Services
+from .api.errors import error_body, install_error_handlers
+from .api.routes import artifacts, health, jobs, surveys
+from .coord import Coordinator
+from .dispatch import Dispatcher
+from .jobs import JobOps
+from .settings import Settings, load_settings
+from .store import JobStore
+from .surveys import SurveyRegistry
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """Underwater survey images in, a 3D Gaussian reconstruction out.
+
+Authenticate with `Authorization: Bearer <API key>`. Errors are JSON `{"error": {"code", "message"}}` with a
+4xx/5xx status; the codes are listed in docs/SERVICE.md."""
+
+
+def build_services(settings: Settings) -> Services:
+    from worker.app import create_celery
+
+    store = JobStore(settings.jobs_dir)
+    coord = Coordinator.from_url(settings.redis_url, settings.redis_prefix)
+    dispatcher = Dispatcher(create_celery(settings), settings.train_queue)
+    registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,
+                              settings.survey_min_interval_s)
+    return Services(settings, coord, JobOps(store, coord, dispatcher), registry, ingest_slots=None)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or load_settings()
+    services = build_services(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        services.jobs.store.ensure()
+        settings.surveys_dir.mkdir(parents=True, exist_ok=True)
+        swept = services.jobs.store.sweep_incomplete()
+        if swept:
+            log.info("removed %d abandoned upload folder(s)", swept)
+        services.ingest_slots = anyio.Semaphore(settings.ingest_concurrency)
+        app.state.services = services
+        yield
+        services.coord.close()
+
+    app = FastAPI(title="dualphys", version="1", description=DESCRIPTION, lifespan=lifespan)
+    app.state.services = services
+    install_error_handlers(app)
+
+    @app.exception_handler(redis.RedisError)
+    async def _redis_down(request: Request, exc: redis.RedisError) -> JSONResponse:
+        log.error("Redis error on %s %s: %s", request.method, request.url.path, exc)
+        return JSONResponse(error_body("redis_unavailable", "the coordinator (Redis) is unavailable"), 503)
+
+    @app.exception_handler(TimeoutError)
+    async def _busy(request: Request, exc: TimeoutError) -> JSONResponse:
+        return JSONResponse(error_body("busy", str(exc) or "the job is busy; try again"), 503)
+
+    for r in (health.router, jobs.router, artifacts.router, surveys.router):
+        app.include_router(r)
+    return app

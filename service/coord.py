@@ -1,0 +1,203 @@
+"""Redis as the coordinator: per-job run lock (with a heartbeat), manifest mutex, cancel flags, progress cache,
+idempotency keys and survey scan locks. Nothing here is the truth about a job (the manifest on disk is);
+losing Redis loses queued messages and the cache, never a finished stage.
+
+Keys (all under ``<prefix>:``): ``job:<id>:run`` (runner lock), ``job:<id>:manifest`` (short mutex around a
+manifest read-modify-write), ``job:<id>:cancel``, ``job:<id>:progress`` (hash), ``idem:<owner>:<sha256>``,
+``survey:<id>:scan``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import redis
+from redis.exceptions import LockError
+
+log = logging.getLogger(__name__)
+
+PROGRESS_TTL_S = 7 * 24 * 3600
+IDEMPOTENCY_TTL_S = 24 * 3600
+
+# Progress never goes down: keep the larger of the stored and the new value (a resumed stage restarts its
+# fraction from the checkpoint, which may be below what a poller already saw).
+_PROGRESS_MAX = """
+local old = tonumber(redis.call('HGET', KEYS[1], 'progress') or '-1')
+local new = tonumber(ARGV[2])
+if old > new then new = old end
+redis.call('HSET', KEYS[1], 'run_id', ARGV[1], 'progress', tostring(new), 'stage', ARGV[3],
+           'message', ARGV[4], 'updated_at', ARGV[5])
+redis.call('EXPIRE', KEYS[1], tonumber(ARGV[6]))
+return tostring(new)
+"""
+
+_DELETE_IF_EQUAL = """
+if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('DEL', KEYS[1]) end
+return 0
+"""
+
+
+class RunLock:
+    """The one-runner-per-job lock, renewed by a daemon thread every ttl/3 while held.
+
+    ``lost`` is set when a renewal finds the lock gone (it expired and another runner may own the job): the
+    stage must then stop without recording anything.
+    """
+
+    def __init__(self, lock: redis.lock.Lock, ttl_s: float):
+        self._lock = lock
+        self._ttl_s = ttl_s
+        self.lost = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start_heartbeat(self) -> None:
+        self._thread = threading.Thread(target=self._beat, name="job-lock-heartbeat", daemon=True)
+        self._thread.start()
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self._ttl_s / 3):
+            try:
+                self._lock.reacquire()
+            except LockError:
+                log.error("job lock %s was lost; stopping this runner", self._lock.name)
+                self.lost.set()
+                return
+            except redis.RedisError as e:  # Redis briefly away: keep trying until the TTL runs out
+                log.warning("could not renew job lock %s: %s", self._lock.name, e)
+
+    def release(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        try:
+            self._lock.release()
+        except LockError:
+            pass
+        except redis.RedisError as e:
+            log.warning("could not release job lock %s (it expires by itself): %s", self._lock.name, e)
+
+
+class Coordinator:
+    def __init__(self, client: redis.Redis, prefix: str):
+        self.redis = client
+        self.prefix = prefix
+        self._progress = client.register_script(_PROGRESS_MAX)
+        self._delete_if_equal = client.register_script(_DELETE_IF_EQUAL)
+
+    @classmethod
+    def from_url(cls, url: str, prefix: str) -> Coordinator:
+        client = redis.Redis.from_url(url, decode_responses=True, socket_timeout=10, socket_connect_timeout=5,
+                                      health_check_interval=30)
+        return cls(client, prefix)
+
+    def key(self, *parts: str) -> str:
+        return ":".join((self.prefix, *parts))
+
+    def ping(self) -> bool:
+        try:
+            return bool(self.redis.ping())
+        except redis.RedisError:
+            return False
+
+    def close(self) -> None:
+        self.redis.close()
+
+    # ---- locks
+    @contextmanager
+    def manifest_mutex(self, job_id: str, timeout_s: float = 30.0) -> Iterator[None]:
+        """Serialise read-modify-write of one manifest between the API and the workers."""
+        lock = self.redis.lock(self.key("job", job_id, "manifest"), timeout=timeout_s, blocking_timeout=timeout_s)
+        if not lock.acquire():
+            raise TimeoutError(f"manifest of job {job_id} stayed locked for {timeout_s} s")
+        try:
+            yield
+        finally:
+            try:
+                lock.release()
+            except LockError:
+                log.warning("manifest mutex of %s expired while held", job_id)
+
+    def try_run_lock(self, job_id: str, ttl_s: float) -> RunLock | None:
+        lock = self.redis.lock(self.key("job", job_id, "run"), timeout=ttl_s, blocking=False, thread_local=False)
+        if not lock.acquire(blocking=False):
+            return None
+        held = RunLock(lock, ttl_s)
+        held.start_heartbeat()
+        return held
+
+    def run_lock_held(self, job_id: str) -> bool:
+        return bool(self.redis.exists(self.key("job", job_id, "run")))
+
+    @contextmanager
+    def scan_lock(self, survey_id: str, ttl_s: float = 600.0) -> Iterator[bool]:
+        """Yields False when another scanner holds this survey's lock (the caller skips the scan)."""
+        lock = self.redis.lock(self.key("survey", survey_id, "scan"), timeout=ttl_s, blocking=False)
+        got = lock.acquire(blocking=False)
+        try:
+            yield got
+        finally:
+            if got:
+                try:
+                    lock.release()
+                except LockError:
+                    pass
+
+    # ---- cancel
+    def request_cancel(self, job_id: str) -> None:
+        self.redis.set(self.key("job", job_id, "cancel"), "1", ex=PROGRESS_TTL_S)
+
+    def clear_cancel(self, job_id: str) -> None:
+        self.redis.delete(self.key("job", job_id, "cancel"))
+
+    def cancel_requested(self, job_id: str) -> bool:
+        return bool(self.redis.exists(self.key("job", job_id, "cancel")))
+
+    # ---- progress cache
+    def push_progress(self, job_id: str, run_id: str, stage: str, progress: float, message: str) -> float:
+        """Store progress (kept monotonic in Redis); returns the stored value."""
+        out = self._progress(keys=[self.key("job", job_id, "progress")],
+                             args=[run_id, f"{progress:.3f}", stage, message[:500], f"{time.time():.3f}",
+                                   PROGRESS_TTL_S])
+        return float(out)
+
+    def read_progress(self, job_id: str) -> dict | None:
+        d = self.redis.hgetall(self.key("job", job_id, "progress"))
+        if not d:
+            return None
+        return {"run_id": d.get("run_id", ""), "progress": float(d.get("progress", 0)), "stage": d.get("stage", ""),
+                "message": d.get("message", ""), "updated_at": float(d.get("updated_at", 0))}
+
+    def forget_job(self, job_id: str) -> None:
+        self.redis.delete(self.key("job", job_id, "progress"), self.key("job", job_id, "cancel"))
+
+    # ---- idempotency keys
+    def _idem_key(self, owner: str, key: str) -> str:
+        return self.key("idem", owner, hashlib.sha256(key.encode()).hexdigest())
+
+    def claim_idempotency(self, owner: str, key: str, job_id: str) -> str | None:
+        """Claim ``key`` for a new job. Returns None when claimed, else what it holds: a job id, or
+        ``pending:<job id>`` while another request with the same key is still uploading."""
+        k = self._idem_key(owner, key)
+        if self.redis.set(k, f"pending:{job_id}", nx=True, ex=IDEMPOTENCY_TTL_S):
+            return None
+        return self.redis.get(k) or f"pending:{job_id}"
+
+    def confirm_idempotency(self, owner: str, key: str, job_id: str) -> None:
+        self.redis.set(self._idem_key(owner, key), job_id, ex=IDEMPOTENCY_TTL_S)
+
+    def release_idempotency(self, owner: str, key: str, job_id: str) -> None:
+        self._delete_if_equal(keys=[self._idem_key(owner, key)], args=[f"pending:{job_id}"])
+
+    # ---- housekeeping (tests)
+    def delete_all_keys(self) -> int:
+        """Delete every key under this prefix (the broker's too). Only tests and tear-downs call this."""
+        n = 0
+        for k in self.redis.scan_iter(match=f"{self.prefix}:*", count=500):
+            n += self.redis.delete(k)
+        return n

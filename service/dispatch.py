@@ -1,0 +1,42 @@
+"""Sending stage tasks: one message per (job, stage, run). The API and the workers both send through this."""
+
+from __future__ import annotations
+
+import logging
+
+from kombu.exceptions import KombuError
+from redis.exceptions import RedisError
+
+log = logging.getLogger(__name__)
+
+RUN_STAGE_TASK = "dualphys.run_stage"
+SCAN_SURVEYS_TASK = "dualphys.scan_surveys"
+SCAN_SURVEY_TASK = "dualphys.scan_survey"
+CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE = "cpu", "gpu", "surveys"
+
+
+class DispatchError(RuntimeError):
+    """The broker did not take the message (Redis down)."""
+
+
+class Dispatcher:
+    def __init__(self, celery_app, train_queue: str = CPU_QUEUE):
+        self.app = celery_app
+        self.train_queue = train_queue
+
+    def queue_for(self, stage: str) -> str:
+        return self.train_queue if stage == "train" else CPU_QUEUE
+
+    def send_stage(self, job_id: str, stage: str, run_id: str) -> str:
+        try:
+            res = self.app.send_task(RUN_STAGE_TASK, args=[job_id, stage, run_id], queue=self.queue_for(stage))
+        except (KombuError, RedisError, OSError) as e:
+            raise DispatchError(f"could not queue stage {stage} of job {job_id}: {e}") from e
+        log.info("queued %s of job %s (run %s) on %s as %s", stage, job_id, run_id, self.queue_for(stage), res.id)
+        return res.id
+
+    def send_scan(self, survey_id: str) -> str:
+        try:
+            return self.app.send_task(SCAN_SURVEY_TASK, args=[survey_id], queue=SURVEY_QUEUE).id
+        except (KombuError, RedisError, OSError) as e:
+            raise DispatchError(f"could not queue a scan of survey {survey_id}: {e}") from e

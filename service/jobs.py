@@ -1,0 +1,212 @@
+"""Job operations shared by the API, the worker and the survey scanner: create and dispatch, cancel, retry,
+delete, the status view. Every manifest change is a read-modify-write under the job's Redis mutex; domain
+errors here carry a stable ``code`` and the routes turn them into HTTP responses.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from .coord import Coordinator
+from .dispatch import Dispatcher, DispatchError
+from .manifest import TERMINAL_STATES, JobError, Manifest, RunRecord, StageRecord
+from .store import JobNotFound, JobStore
+
+log = logging.getLogger(__name__)
+
+
+class JobConflict(RuntimeError):
+    """The job is in a state where the operation makes no sense (code says which)."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+def new_run_id() -> str:
+    return secrets.token_hex(6)
+
+
+def pipeline_stages() -> tuple[str, ...]:
+    from pipeline.job import STAGES  # pipeline.job imports no torch; read at call time (stages may be added)
+
+    return tuple(STAGES)
+
+
+@dataclass
+class StatusView:
+    """A manifest with the live progress cache folded in (what GET /jobs/{id} shows)."""
+
+    manifest: Manifest
+    state: str
+    stage: str | None
+    progress: float
+    message: str
+
+
+class JobOps:
+    def __init__(self, store: JobStore, coord: Coordinator, dispatcher: Dispatcher | None):
+        self.store = store
+        self.coord = coord
+        self.dispatcher = dispatcher
+
+    # ---- create
+    def create(self, job_id: str, owner: str, options: dict, source: dict, *, survey_id: str | None = None,
+               ingest: dict | None = None, ingest_seconds: float | None = None) -> Manifest:
+        """Write job.json and the manifest of a job whose folder exists, then queue its first unfinished stage."""
+        from pipeline.stages import atomic_write_json
+
+        now = time.time()
+        stages = pipeline_stages()
+        run_id = new_run_id()
+        m = Manifest(id=job_id, owner=owner, created_at=now, updated_at=now, run_id=run_id, options=options,
+                     source=source, survey_id=survey_id, ingest=ingest,
+                     stages={s: StageRecord() for s in stages})
+        if ingest is not None:  # the API validated the upload by running the ingest stage itself
+            m.stages["ingest"] = StageRecord(status="done", started_at=now - (ingest_seconds or 0), finished_at=now,
+                                             seconds=ingest_seconds, attempts=1)
+        first = self.first_unfinished(m)
+        m.runs.append(RunRecord(run_id=run_id, from_stage=first, queued_at=now))
+        m.progress = self._done_progress(m)
+        atomic_write_json(self.store.job_dir(job_id) / "job.json", options)
+        self.store.write(m)
+        self.store.append_log(job_id, f"INFO service: job created by {owner} ({source.get('kind')}); "
+                                      f"first stage {first}")
+        if ingest is not None:
+            skipped = ", ".join(f"{s['file']} ({s['reason']})" for s in ingest.get("skipped", [])) or "none"
+            self.store.append_log(job_id, f"INFO service: upload checked: {len(ingest.get('images', []))} images, "
+                                          f"{len(ingest.get('ignored', []))} non-image files ignored, "
+                                          f"undecodable files skipped: {skipped}")
+        return self.dispatch(job_id, run_id, first)
+
+    def first_unfinished(self, m: Manifest) -> str | None:
+        return next((s for s in pipeline_stages() if m.stage(s).status != "done"), None)
+
+    def _done_progress(self, m: Manifest) -> float:
+        from .manifest import overall_progress
+
+        stages = pipeline_stages()
+        return overall_progress(stages, {s for s in stages if m.stage(s).status == "done"}, None, 0.0)
+
+    def dispatch(self, job_id: str, run_id: str, stage: str | None) -> Manifest:
+        """Send ``stage`` of run ``run_id`` and record it; a broker failure fails the job (retry re-sends)."""
+        if stage is None:
+            return self.store.read(job_id)
+        assert self.dispatcher is not None
+        try:
+            self.dispatcher.send_stage(job_id, stage, run_id)
+        except DispatchError as e:
+            log.error("%s", e)
+            with self.coord.manifest_mutex(job_id):
+                m = self.store.read(job_id)
+                if m.run_id == run_id and m.state not in TERMINAL_STATES:
+                    m.state = "failed"
+                    m.error = JobError(stage=stage, code="broker_unavailable", message=str(e))
+                    self.store.write(m)
+            raise
+        with self.coord.manifest_mutex(job_id):
+            m = self.store.read(job_id)
+            if m.run_id == run_id and stage not in m.dispatched:
+                m.dispatched.append(stage)
+                self.store.write(m)
+        return m
+
+    # ---- read
+    def get(self, job_id: str, owner: str) -> Manifest:
+        """The job if it exists and belongs to ``owner``; JobNotFound otherwise (others' jobs do not exist)."""
+        m = self.store.read(job_id)
+        if m.owner != owner:
+            raise JobNotFound(job_id)
+        return m
+
+    def view(self, m: Manifest) -> StatusView:
+        state, stage, progress, message = m.state, m.current_stage, m.progress, m.message
+        try:
+            live = self.coord.read_progress(m.id)
+        except Exception as e:  # a status read must not fail because the cache is away
+            log.warning("progress cache unavailable: %s", e)
+            live = None
+        if live is not None:
+            progress = max(progress, live["progress"])  # never below what a poller may already have seen
+            if m.state == "running" and live["run_id"] == m.run_id:
+                stage, message = live["stage"] or stage, live["message"] or message
+        if m.state == "done":
+            progress = 100.0
+        if m.state == "running" and m.cancel_requested:
+            state = "cancelling"
+        return StatusView(m, state, stage, round(progress, 2), message)
+
+    # ---- cancel / retry / delete
+    def cancel(self, job_id: str, owner: str) -> Manifest:
+        with self.coord.manifest_mutex(job_id):
+            m = self.get(job_id, owner)
+            if m.state == "done":
+                raise JobConflict("job_finished", "the job has already finished")
+            if m.state in ("failed", "cancelled"):
+                return m
+            if not self.coord.run_lock_held(job_id):
+                # no stage is running (queued, or between two stages): nothing to interrupt. A runner that
+                # takes the lock right after this check reads the manifest under the mutex and drops the job.
+                self._mark_cancelled(m, "cancelled" if m.state == "running" else "cancelled before it started")
+            else:
+                m.cancel_requested = True
+                self.coord.request_cancel(job_id)
+                m.message = "cancel requested"
+            self.store.write(m)
+        self.store.append_log(job_id, "INFO service: cancel requested")
+        return m
+
+    @staticmethod
+    def _mark_cancelled(m: Manifest, message: str) -> None:
+        m.state = "cancelled"
+        m.cancel_requested = False
+        m.message = message
+        run = m.current_run
+        if run is not None and run.outcome is None:
+            run.outcome, run.finished_at = "cancelled", time.time()
+
+    def retry(self, job_id: str, owner: str) -> Manifest:
+        from pipeline.job import JobOptions, first_unfinished
+
+        with self.coord.manifest_mutex(job_id):
+            m = self.get(job_id, owner)
+            if m.state not in ("failed", "cancelled"):
+                raise JobConflict("not_retryable", f"only failed or cancelled jobs can be retried (job is {m.state})")
+            if self.coord.run_lock_held(job_id):
+                raise JobConflict("job_active", "the job's last runner has not stopped yet; retry in a moment")
+            opts = JobOptions.from_json(m.options)
+            start = first_unfinished(self.store.job_dir(job_id), opts)
+            if start is None:
+                raise JobConflict("nothing_to_retry", "every stage of this job is already complete")
+            stages = pipeline_stages()
+            for s in stages[stages.index(start):]:
+                m.stages[s] = StageRecord()
+            m.run_id = new_run_id()
+            m.state, m.error, m.cancel_requested, m.dispatched = "queued", None, False, []
+            m.current_stage, m.message = start, f"retry from {start}"
+            m.runs.append(RunRecord(run_id=m.run_id, from_stage=start, queued_at=time.time()))
+            self.coord.clear_cancel(job_id)
+            self.store.write(m)
+            run_id = m.run_id
+        self.store.append_log(job_id, f"INFO service: retry from stage {start}")
+        return self.dispatch(job_id, run_id, start)
+
+    def delete(self, job_id: str, owner: str) -> None:
+        with self.coord.manifest_mutex(job_id):
+            m = self.get(job_id, owner)
+            if m.state in ("queued", "running") or self.coord.run_lock_held(job_id):
+                raise JobConflict("job_active", f"the job is {m.state}; cancel it first")
+            self.store.remove(job_id)
+        self.coord.forget_job(job_id)
+
+    def list(self, owner: str, state: str | None = None, survey_id: str | None = None) -> list[Manifest]:
+        return [m for m in self.store.list()
+                if m.owner == owner and (state is None or m.state == state)
+                and (survey_id is None or m.survey_id == survey_id)]
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.store.job_dir(job_id)

@@ -1,0 +1,96 @@
+"""The job manifest (``<job>/manifest.json``): the truth about a job, written atomically by whoever changes it
+(the API on create/cancel/retry, the worker on every stage transition and, throttled, on progress).
+
+States: ``queued`` -> ``running`` -> ``done`` | ``failed`` | ``cancelled``; ``failed`` and ``cancelled`` go
+back to ``queued`` on retry. The stage list comes from ``pipeline.job.STAGES`` when read, so stages added to
+the pipeline later appear in old manifests as ``pending``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+JobState = Literal["queued", "running", "done", "failed", "cancelled"]
+StageStatus = Literal["pending", "running", "done", "failed", "cancelled"]
+TERMINAL_STATES: frozenset[str] = frozenset({"done", "failed", "cancelled"})
+MANIFEST_NAME = "manifest.json"
+SCHEMA_VERSION = 1
+
+# Share of the 0-100 progress bar per stage (relative; normalised over the stages the pipeline has).
+# Stages not listed get DEFAULT_STAGE_WEIGHT, so a stage added to pipeline.job.STAGES needs no change here.
+STAGE_WEIGHTS: dict[str, float] = {"ingest": 3, "sfm": 12, "classify": 2, "train": 70, "evaluate": 5, "export": 8}
+DEFAULT_STAGE_WEIGHT = 5.0
+
+
+class StageRecord(BaseModel):
+    status: StageStatus = "pending"
+    started_at: float | None = None
+    finished_at: float | None = None
+    seconds: float | None = None  # wall time of the attempt that finished it
+    attempts: int = 0  # how many times a runner started it (a worker crash shows as attempts > 1)
+    skipped: bool = False  # its completion marker already matched (redelivery, retry)
+
+
+class JobError(BaseModel):
+    stage: str | None
+    code: str
+    message: str
+
+
+class RunRecord(BaseModel):
+    run_id: str
+    from_stage: str | None
+    queued_at: float
+    finished_at: float | None = None
+    outcome: str | None = None  # done | failed | cancelled
+
+
+class Manifest(BaseModel):
+    schema_version: int = SCHEMA_VERSION
+    id: str
+    owner: str
+    created_at: float
+    updated_at: float
+    state: JobState = "queued"
+    cancel_requested: bool = False
+    run_id: str
+    runs: list[RunRecord] = Field(default_factory=list)
+    completed_runs: int = 0  # how many times the last stage finished; exactly 1 for a finished job
+    options: dict
+    source: dict  # {"kind": "upload", "filename", "bytes", "sha256"} | {"kind": "survey", "survey_id", "set", ...}
+    survey_id: str | None = None
+    stages: dict[str, StageRecord] = Field(default_factory=dict)
+    current_stage: str | None = None
+    progress: float = 0.0
+    message: str = ""
+    error: JobError | None = None
+    dispatched: list[str] = Field(default_factory=list)  # stages of the current run whose task was sent
+    ingest: dict | None = None  # images, skipped (undecodable, listed), ignored (non-images)
+
+    def stage(self, name: str) -> StageRecord:
+        return self.stages.setdefault(name, StageRecord())
+
+    def touch(self) -> None:
+        self.updated_at = time.time()
+
+    @property
+    def current_run(self) -> RunRecord | None:
+        return next((r for r in reversed(self.runs) if r.run_id == self.run_id), None)
+
+
+def stage_weights(stages: tuple[str, ...]) -> dict[str, float]:
+    w = {s: STAGE_WEIGHTS.get(s, DEFAULT_STAGE_WEIGHT) for s in stages}
+    total = sum(w.values()) or 1.0
+    return {s: 100.0 * v / total for s, v in w.items()}
+
+
+def overall_progress(stages: tuple[str, ...], done: set[str], stage: str | None, fraction: float) -> float:
+    """0-100: the weights of the finished stages plus the running stage's weight times its fraction."""
+    w = stage_weights(stages)
+    p = sum(w[s] for s in stages if s in done)
+    if stage is not None and stage not in done and stage in w:
+        p += w[stage] * min(1.0, max(0.0, fraction))
+    return round(min(100.0, p), 3)

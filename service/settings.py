@@ -1,0 +1,122 @@
+"""Service and worker settings, from the environment (prefix ``DUALPHYS_``) via pydantic-settings.
+
+The API keys and the data folder have no defaults: a deployment must say them. Everything else has a
+production default; tests and ``service.embedded.serve`` override the timings. Lists and mappings are JSON
+in the environment, e.g. ``DUALPHYS_API_KEYS='{"<key>": "alice"}'``, ``DUALPHYS_SURVEY_ROOTS='["/surveys"]'``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from pipeline.archive import ArchiveLimits
+
+MIN_KEY_LENGTH = 16
+
+
+class Settings(BaseSettings):
+    """One object for the API, the worker and beat (they read the same environment)."""
+
+    model_config = SettingsConfigDict(env_prefix="DUALPHYS_", extra="ignore", frozen=True)
+
+    # ---- required
+    api_keys: dict[SecretStr, str]
+    """API key -> owner name. Keys travel only in ``Authorization: Bearer <key>``; at least 16 characters."""
+    data_dir: Path
+    """Job folders (``jobs/``), survey state (``surveys/``), the beat schedule. Shared by api, worker, beat."""
+
+    # ---- Redis (broker, per-job locks, progress cache)
+    redis_url: str = "redis://127.0.0.1:6379/0"
+    redis_prefix: str = "dualphys"
+    """Every key this service writes starts with ``<prefix>:``, the broker's keys included."""
+
+    # ---- uploads
+    max_upload_bytes: int = Field(2 << 30, gt=0)
+    """Cap on one uploaded archive; refused with 413 from Content-Length or while streaming."""
+    archive_max_entries: int = Field(5000, gt=0)
+    archive_max_total_bytes: int = Field(4 << 30, gt=0)
+    archive_max_file_bytes: int = Field(512 << 20, gt=0)
+    archive_max_ratio: float = Field(200.0, gt=1)
+    min_images: int = Field(3, ge=1)
+    ingest_concurrency: int = Field(2, ge=1)
+    """Uploads validated (unpacked and decoded) at once in the API process; more wait their turn."""
+    min_free_bytes: int = Field(1 << 30, ge=0)
+    """The data disk must keep this much free: /ready fails below it and uploads get 507."""
+    max_iterations: int = Field(100_000, ge=1)
+
+    # ---- worker
+    device: str = "cpu"
+    """Torch device of this worker's stages (``cuda`` on GPU workers)."""
+    train_queue: str = "cpu"
+    """Queue of the train stage: ``gpu`` when GPU workers (``-Q gpu``) exist; every other stage uses ``cpu``."""
+    visibility_timeout_s: int = Field(900, ge=1)
+    """Broker redelivers an unacknowledged task after this; the job lock makes the redelivery harmless."""
+    restore_interval_s: int = Field(30, ge=1)
+    """How often a worker looks for tasks abandoned by a dead worker (after ``visibility_timeout_s``)."""
+    lock_ttl_s: float = Field(60.0, gt=0)
+    """Per-job lock lifetime; the runner renews it every third of this while a stage runs."""
+    lock_retry_s: float = Field(15.0, gt=0)
+    """A task whose job is locked by another runner comes back after this many seconds."""
+    max_stage_attempts: int = Field(3, ge=1)
+    """A stage whose worker died this many times fails the job (code ``worker_lost``)."""
+    max_tasks_per_child: int = Field(0, ge=0)
+    """Replace a prefork child after this many tasks (0: never by count). Each replacement costs ~2 s."""
+    max_memory_per_child_mb: int = Field(3072, ge=0)
+    """Replace a prefork child after a task that left it above this resident size (0: never), so memory a
+    large job took is given back; the pipeline keeps no state between stages, so reuse is otherwise safe."""
+
+    # ---- survey folders
+    survey_roots: list[Path] = []
+    """Folders under which survey folders may be registered (resolved, symlinks followed, then checked)."""
+    surveys_file: Path | None = None
+    """TOML file with ``[[survey]]`` tables (name, path, owner, interval_s, options); read on every tick."""
+    survey_tick_s: float = Field(30.0, gt=0)
+    """Beat period; each survey is scanned when its own interval has passed."""
+    survey_min_interval_s: float = Field(60.0, gt=0)
+    survey_settle_s: float = Field(120.0, ge=0)
+    """A set is submitted only when its newest image is at least this old (the ROV has stopped writing)."""
+    survey_gap_s: float = Field(300.0, gt=0)
+    """Images directly in a survey folder split into sets where capture times are further apart than this."""
+
+    @field_validator("api_keys")
+    @classmethod
+    def _keys_long_enough(cls, v: dict[SecretStr, str]) -> dict[SecretStr, str]:
+        if not v:
+            raise ValueError("at least one API key is required")
+        for key, owner in v.items():
+            if len(key.get_secret_value()) < MIN_KEY_LENGTH:
+                raise ValueError(f"API keys must have at least {MIN_KEY_LENGTH} characters (owner {owner!r})")
+            if not owner or not owner.replace("-", "").replace("_", "").replace(".", "").isalnum():
+                raise ValueError(f"owner names are letters, digits, '-', '_' and '.': {owner!r}")
+        return v
+
+    @property
+    def jobs_dir(self) -> Path:
+        return self.data_dir / "jobs"
+
+    @property
+    def surveys_dir(self) -> Path:
+        return self.data_dir / "surveys"
+
+    def archive_limits(self) -> ArchiveLimits:
+        return ArchiveLimits(max_entries=self.archive_max_entries, max_total_bytes=self.archive_max_total_bytes,
+                             max_file_bytes=self.archive_max_file_bytes, max_ratio=self.archive_max_ratio)
+
+    def owner_of(self, key: str) -> str | None:
+        """The owner of an API key (constant-time comparison against every configured key)."""
+        import hmac
+
+        found = None
+        for k, owner in self.api_keys.items():
+            if hmac.compare_digest(k.get_secret_value().encode(), key.encode()):
+                found = owner
+        return found
+
+
+def load_settings(**overrides) -> Settings:
+    """Read the environment (plus explicit overrides); raises pydantic's ValidationError when it is incomplete."""
+    return Settings(**overrides)
+

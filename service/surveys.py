@@ -1,0 +1,412 @@
+"""Survey folders: a folder an ROV keeps filling, registered under an allowed root, scanned on a schedule;
+every new image set becomes exactly one job.
+
+Grouping rule (also in docs/SERVICE.md):
+
+- Every immediate sub-folder of the survey folder is one set (all images below it, at any depth).
+- Images lying directly in the survey folder are ordered by capture time (the file's modification time; the
+  ROV writes each frame as it takes it) and split into sets wherever two consecutive images are more than
+  ``survey_gap_s`` apart.
+- A set is submitted when it has at least ``min_images`` images and its newest image is at least
+  ``survey_settle_s`` old (the ROV has stopped writing to it).
+- Identity is content: the set's hash covers every image's relative path and SHA-256. The job id is derived
+  from (survey, set hash), and a job folder that exists is never created again, so re-scans, concurrent
+  scanners and restarts of beat or workers never submit a set twice. A set that changes after submission
+  (an image added, replaced or removed) has a new hash and becomes a new job.
+
+Hidden files and folders, symbolic links and non-image suffixes are ignored. The set's images are copied into
+the job folder (``input/``) and checked against the hash while copying, so the job never depends on a folder
+that keeps changing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import secrets
+import shutil
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+from pydantic import BaseModel, Field, ValidationError
+
+from pipeline.stages import atomic_write_text
+
+from .manifest import Manifest
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".webp", ".bmp", ".jp2", ".jxl",
+                            ".dpx", ".tga", ".ppm", ".pgm", ".hdr"})
+HASH_CHUNK = 1 << 20
+
+
+class SurveyError(ValueError):
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+class SurveyNotFound(LookupError):
+    pass
+
+
+class SurveyOptions(BaseModel):
+    """The job options a survey's jobs get (the pipeline's JobOptions minus the source)."""
+
+    model_config = {"extra": "forbid"}
+    preset: str = "fast"
+    mode: str = "3dgs"
+    max_width: int = Field(400, ge=32, le=16384)
+    metric_scale: float | None = Field(None, gt=0)
+    iterations: int | None = Field(None, ge=1)
+    seed: int = 0
+
+
+class Survey(BaseModel):
+    id: str
+    owner: str
+    name: str
+    path: str  # resolved
+    interval_s: float
+    options: SurveyOptions = Field(default_factory=SurveyOptions)
+    origin: str = "api"  # api | config
+    created_at: float = 0.0
+
+
+class SubmittedSet(BaseModel):
+    name: str
+    images: int
+    job_id: str
+    submitted_at: float
+
+
+class SurveyState(BaseModel):
+    last_scan_at: float = 0.0
+    last_scan_seconds: float | None = None
+    scans: int = 0
+    last_error: str | None = None
+    sets: dict[str, SubmittedSet] = Field(default_factory=dict)  # set hash -> job
+    digests: dict[str, tuple[int, int, str]] = Field(default_factory=dict)  # rel path -> (size, mtime_ns, sha256)
+
+
+@dataclass(frozen=True)
+class ImageFile:
+    rel: str  # POSIX path relative to the survey folder
+    size: int
+    mtime: float
+    mtime_ns: int
+
+
+@dataclass
+class ImageSet:
+    name: str
+    files: list[ImageFile]
+
+    @property
+    def newest(self) -> float:
+        return max(f.mtime for f in self.files)
+
+
+def survey_id(owner: str, path: str) -> str:
+    return "v" + hashlib.sha256(f"{owner}\0{path}".encode()).hexdigest()[:15]
+
+
+def set_job_id(sid: str, set_hash: str) -> str:
+    return "s" + hashlib.sha256(f"{sid}\0{set_hash}".encode()).hexdigest()[:23]
+
+
+def resolve_under_roots(path: str, roots: list[Path]) -> Path:
+    """The real folder ``path`` names, if it lies under an allowed root (after resolving every link)."""
+    if not roots:
+        raise SurveyError("surveys_disabled", "no survey roots are configured (DUALPHYS_SURVEY_ROOTS)")
+    try:
+        real = Path(path).resolve(strict=True)
+    except (OSError, RuntimeError) as e:
+        raise SurveyError("path_not_found", f"no such folder: {path}") from e
+    if not real.is_dir():
+        raise SurveyError("path_not_found", f"not a folder: {path}")
+    for root in roots:
+        r = Path(root).resolve()
+        if real == r or real.is_relative_to(r):
+            return real
+    raise SurveyError("path_not_allowed", f"{path} is not under an allowed survey root")
+
+
+# ---------------------------------------------------------------- grouping (pure)
+
+
+def list_images(root: Path) -> list[ImageFile]:
+    """Regular, non-hidden image files under ``root``; links and hidden entries are skipped, never followed."""
+    out: list[ImageFile] = []
+    for dirpath, dirnames, filenames in os.walk(root, followlinks=False):
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".")
+                             and not os.path.islink(os.path.join(dirpath, d)))
+        for name in sorted(filenames):
+            if name.startswith(".") or Path(name).suffix.lower() not in IMAGE_SUFFIXES:
+                continue
+            p = os.path.join(dirpath, name)
+            try:
+                st = os.lstat(p)
+            except FileNotFoundError:
+                continue
+            if not _is_regular(st.st_mode):
+                continue
+            rel = PurePosixPath(Path(p).relative_to(root).as_posix())
+            out.append(ImageFile(str(rel), st.st_size, st.st_mtime, st.st_mtime_ns))
+    return out
+
+
+def _is_regular(mode: int) -> bool:
+    import stat
+
+    return stat.S_ISREG(mode)
+
+
+def group_images(files: list[ImageFile], gap_s: float) -> list[ImageSet]:
+    """Sub-folders -> one set each; top-level images -> split by capture-time gaps (module docstring)."""
+    by_folder: dict[str, list[ImageFile]] = {}
+    top: list[ImageFile] = []
+    for f in files:
+        parts = PurePosixPath(f.rel).parts
+        if len(parts) == 1:
+            top.append(f)
+        else:
+            by_folder.setdefault(parts[0], []).append(f)
+    sets = [ImageSet(name, sorted(fs, key=lambda f: f.rel)) for name, fs in sorted(by_folder.items())]
+    top.sort(key=lambda f: (f.mtime, f.rel))
+    group: list[ImageFile] = []
+    for f in top:
+        if group and f.mtime - group[-1].mtime > gap_s:
+            sets.append(_time_set(group))
+            group = []
+        group.append(f)
+    if group:
+        sets.append(_time_set(group))
+    return sets
+
+
+def _time_set(files: list[ImageFile]) -> ImageSet:
+    return ImageSet(time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(files[0].mtime)), sorted(files, key=lambda f: f.rel))
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(HASH_CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def set_hash(files: list[ImageFile], digests: dict[str, tuple[int, int, str]]) -> str:
+    h = hashlib.sha256()
+    for f in sorted(files, key=lambda f: f.rel):
+        h.update(f"{f.rel}\0{digests[f.rel][2]}\n".encode())
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------- registry
+
+
+class SurveyRegistry:
+    """API-registered surveys live in ``<data>/surveys/<id>/survey.json``; config-file surveys are read from
+    ``surveys_file`` each time; both keep their scan state in ``<data>/surveys/<id>/state.json``."""
+
+    def __init__(self, surveys_dir: Path, roots: list[Path], surveys_file: Path | None, min_interval_s: float):
+        self.dir = Path(surveys_dir)
+        self.roots = roots
+        self.surveys_file = surveys_file
+        self.min_interval_s = min_interval_s
+
+    def _folder(self, sid: str) -> Path:
+        if not (sid.startswith("v") and sid[1:].isalnum() and len(sid) == 16):
+            raise SurveyNotFound(sid)
+        return self.dir / sid
+
+    def register(self, owner: str, path: str, interval_s: float, name: str | None,
+                 options: SurveyOptions) -> Survey:
+        real = resolve_under_roots(path, self.roots)
+        if interval_s < self.min_interval_s:
+            raise SurveyError("interval_too_short", f"interval_s must be at least {self.min_interval_s}")
+        sid = survey_id(owner, str(real))
+        if any(s.id == sid for s in self.all()):
+            raise SurveyError("survey_exists", f"{real} is already registered as survey {sid}")
+        s = Survey(id=sid, owner=owner, name=name or real.name, path=str(real), interval_s=interval_s,
+                   options=options, origin="api", created_at=time.time())
+        atomic_write_text(self._folder(sid) / "survey.json", s.model_dump_json(indent=2))
+        return s
+
+    def all(self) -> list[Survey]:
+        out = []
+        if self.dir.is_dir():
+            for p in sorted(self.dir.glob("v*/survey.json")):
+                try:
+                    out.append(Survey.model_validate_json(p.read_text()))
+                except (ValidationError, OSError) as e:
+                    log.error("unreadable survey %s: %s", p, e)
+        out += self.from_config()
+        return out
+
+    def from_config(self) -> list[Survey]:
+        if self.surveys_file is None:
+            return []
+        try:
+            data = tomllib.loads(Path(self.surveys_file).read_text(encoding="utf-8"))
+        except (OSError, tomllib.TOMLDecodeError) as e:
+            log.error("cannot read surveys file %s: %s", self.surveys_file, e)
+            return []
+        out = []
+        for i, entry in enumerate(data.get("survey", [])):
+            try:
+                real = resolve_under_roots(str(entry["path"]), self.roots)
+                interval = max(float(entry.get("interval_s", 3600)), self.min_interval_s)
+                owner = str(entry["owner"])
+                out.append(Survey(id=survey_id(owner, str(real)), owner=owner, name=str(entry.get("name", real.name)),
+                                  path=str(real), interval_s=interval,
+                                  options=SurveyOptions(**entry.get("options", {})), origin="config"))
+            except (KeyError, TypeError, ValueError, SurveyError, ValidationError) as e:
+                log.error("surveys file %s, entry %d skipped: %s", self.surveys_file, i, e)
+        return out
+
+    def get(self, sid: str, owner: str | None = None) -> Survey:
+        for s in self.all():
+            if s.id == sid and (owner is None or s.owner == owner):
+                return s
+        raise SurveyNotFound(sid)
+
+    def delete(self, sid: str, owner: str) -> None:
+        s = self.get(sid, owner)
+        if s.origin != "api":
+            raise SurveyError("survey_from_config", "this survey comes from the surveys file; edit that file")
+        shutil.rmtree(self._folder(sid), ignore_errors=True)
+
+    def state(self, sid: str) -> SurveyState:
+        try:
+            return SurveyState.model_validate_json((self._folder(sid) / "state.json").read_text())
+        except FileNotFoundError:
+            return SurveyState()
+        except (ValidationError, OSError) as e:
+            log.error("survey %s: unreadable state, starting afresh: %s", sid, e)
+            return SurveyState()
+
+    def save_state(self, sid: str, state: SurveyState) -> None:
+        atomic_write_text(self._folder(sid) / "state.json", state.model_dump_json(indent=1))
+
+
+# ---------------------------------------------------------------- scanning
+
+
+@dataclass
+class ScanConfig:
+    min_images: int
+    settle_s: float
+    gap_s: float
+
+
+def scan(registry: SurveyRegistry, survey: Survey, jobs, cfg: ScanConfig, now: float | None = None) -> list[str]:
+    """One scan of one survey (the caller holds the survey's scan lock). Returns the job ids it submitted.
+
+    A set already recorded in the survey's state is never submitted again, even when its job was deleted
+    (a user who deletes a job does not want it back on the next scan)."""
+    t0 = time.time()
+    now = now if now is not None else t0
+    state = registry.state(survey.id)
+    root = Path(survey.path)
+    submitted: list[str] = []
+    try:
+        if not root.is_dir():
+            raise FileNotFoundError(f"survey folder {root} is missing")
+        files = list_images(root)
+        present = {f.rel for f in files}
+        state.digests = {k: v for k, v in state.digests.items() if k in present}
+        for image_set in group_images(files, cfg.gap_s):
+            if len(image_set.files) < cfg.min_images or now - image_set.newest < cfg.settle_s:
+                continue
+            for f in image_set.files:
+                known = state.digests.get(f.rel)
+                if known is None or known[0] != f.size or known[1] != f.mtime_ns:
+                    state.digests[f.rel] = (f.size, f.mtime_ns, file_sha256(root / f.rel))
+            h = set_hash(image_set.files, state.digests)
+            job_id = set_job_id(survey.id, h)
+            if h in state.sets:
+                _requeue_if_never_sent(jobs, job_id)
+                continue
+            try:
+                if submit_set(jobs, survey, image_set, h, job_id, state.digests):
+                    submitted.append(job_id)
+            except SurveyError as e:
+                log.warning("survey %s: set %s not submitted: %s", survey.id, image_set.name, e)
+                continue
+            state.sets[h] = SubmittedSet(name=image_set.name, images=len(image_set.files), job_id=job_id,
+                                         submitted_at=time.time())
+            registry.save_state(survey.id, state)  # recorded at once: a crash later in the scan loses nothing
+        state.last_error = None
+    except OSError as e:
+        log.error("survey %s: scan failed: %s", survey.id, e)
+        state.last_error = str(e)
+    state.scans += 1
+    state.last_scan_at = time.time()
+    state.last_scan_seconds = round(time.time() - t0, 3)
+    registry.save_state(survey.id, state)
+    if submitted:
+        log.info("survey %s: submitted %s", survey.id, submitted)
+    return submitted
+
+
+def _requeue_if_never_sent(jobs, job_id: str) -> None:
+    """A job whose creator died between writing its manifest and queueing its first stage gets queued now."""
+    store = jobs.store
+    if not store.exists(job_id):
+        return
+    m: Manifest = store.read(job_id)
+    if m.state == "queued" and not m.dispatched and time.time() - m.created_at > 30:
+        log.warning("survey job %s was never queued; queueing it now", job_id)
+        jobs.dispatch(job_id, m.run_id, jobs.first_unfinished(m))
+
+
+def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
+               digests: dict[str, tuple[int, int, str]]) -> bool:
+    """Create the job of one set unless it exists; True when this call created it.
+
+    Copy into a staging folder, verify every file's hash while copying, rename the folder into place (atomic),
+    then write the manifest and queue the first stage. A crash at any point leaves either nothing, a folder
+    without manifest (removed and redone by the next scan) or a queued job whose first stage was never sent
+    (sent by the next scan).
+    """
+    store = jobs.store
+    final = store.job_dir(job_id)
+    if store.exists(job_id):  # the state file was lost, the job was not: adopt it
+        _requeue_if_never_sent(jobs, job_id)
+        return False
+    if final.exists():  # a scanner died between the rename and the manifest
+        shutil.rmtree(final)
+    staging = store.root / f".staging-{job_id}-{secrets.token_hex(3)}"
+    root = Path(survey.path)
+    try:
+        for f in image_set.files:
+            dst = staging / "input" / f.rel
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            if _copy_hashed(root / f.rel, dst) != digests[f.rel][2]:
+                raise SurveyError("set_changed", f"{f.rel} changed while it was copied; the next scan retries")
+        os.rename(staging, final)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    opts = {**survey.options.model_dump(), "source": str(final / "input")}
+    source = {"kind": "survey", "survey_id": survey.id, "set": image_set.name, "set_hash": h,
+              "images": len(image_set.files)}
+    jobs.create(job_id, survey.owner, opts, source, survey_id=survey.id)
+    return True
+
+
+def _copy_hashed(src: Path, dst: Path) -> str:
+    h = hashlib.sha256()
+    with open(src, "rb") as fi, open(dst, "xb") as fo:
+        while chunk := fi.read(HASH_CHUNK):
+            h.update(chunk)
+            fo.write(chunk)
+    shutil.copystat(src, dst)
+    return h.hexdigest()

@@ -1,0 +1,138 @@
+"""Helpers shared by the service tests (imported by conftest.py and the test modules)."""
+
+from __future__ import annotations
+
+import io
+import logging
+import socket
+import time
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+import redis
+
+REPO = Path(__file__).resolve().parents[2]
+REDIS_URL = "redis://127.0.0.1:6379/15"
+KEYS = {"alice": "alice-key-0123456789abcdef", "bob": "bob-key-0123456789abcdef"}
+MAX_UPLOAD = 4 << 20
+MAX_ENTRIES = 200
+SCENE = {"views": 12, "width": 160, "height": 120, "preset": "medium", "seed": 0}
+
+log = logging.getLogger(__name__)
+
+# numbers the tests report at the end of the run (p99 latency ...); printed by conftest
+METRICS: dict[str, str] = {}
+
+
+def wait_for(what: str, predicate: Callable[[], object], timeout: float, interval: float = 0.2):
+    """Poll ``predicate`` until it returns something truthy; fail with ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def zip_bytes(entries: dict[str, bytes], method: int = zipfile.ZIP_STORED) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", method) as z:
+        for name, data in entries.items():
+            z.writestr(name, data)
+    return buf.getvalue()
+
+
+def auth(owner: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {KEYS[owner]}"}
+
+
+def delete_prefix(client: redis.Redis, prefix: str) -> None:
+    for k in client.scan_iter(match=f"{prefix}:*", count=1000):
+        client.delete(k)
+
+
+def small_jpegs(n: int, seed: int = 0, size: tuple[int, int] = (24, 32)) -> list[bytes]:
+    """Tiny valid JPEGs (random texture): enough for ingest, not for SfM."""
+    import tempfile
+
+    import numpy as np
+
+    from pipeline.scene.images import write_image
+
+    out = []
+    with tempfile.TemporaryDirectory() as d:
+        for i in range(n):
+            rng = np.random.default_rng(seed + i)
+            p = Path(d) / f"{i}.jpg"
+            write_image(p, (rng.random((*size, 3)) * 255).astype(np.uint8))
+            out.append(p.read_bytes())
+    return out
+
+
+def make_settings(data_dir: Path, prefix: str, **over):
+    from service.settings import load_settings
+
+    base = dict(api_keys={v: k for k, v in KEYS.items()}, data_dir=data_dir, redis_url=REDIS_URL,
+                redis_prefix=prefix, max_upload_bytes=MAX_UPLOAD, archive_max_entries=MAX_ENTRIES, min_free_bytes=0,
+                survey_roots=[data_dir / "surveys-root"], survey_min_interval_s=1, lock_ttl_s=5, lock_retry_s=1)
+    return load_settings(**{**base, **over})
+
+
+
+class RecordingDispatcher:
+    """Stands in for service.dispatch.Dispatcher: records what would be sent."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[str, str, str]] = []
+
+    def send_stage(self, job_id: str, stage: str, run_id: str) -> str:
+        self.sent.append((job_id, stage, run_id))
+        return f"task-{len(self.sent)}"
+
+
+# ---------------------------------------------------------------- job helpers
+
+
+def upload(client: httpx.Client, archive: bytes, filename: str = "set.zip", headers: dict | None = None,
+           **fields) -> httpx.Response:
+    return client.post("/v1/jobs", files={"archive": (filename, archive, "application/zip")},
+                       data={k: str(v) for k, v in fields.items()}, headers=headers or {})
+
+
+def job_status(client: httpx.Client, job_id: str) -> dict:
+    r = client.get(f"/v1/jobs/{job_id}")
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def wait_job(client: httpx.Client, job_id: str, states: set[str], timeout: float,
+             on_poll: Callable[[dict], None] | None = None) -> dict:
+    def check():
+        s = job_status(client, job_id)
+        if on_poll:
+            on_poll(s)
+        return s if s["state"] in states else None
+
+    return wait_for(f"job {job_id} to reach {sorted(states)}", check, timeout, interval=0.25)
+
+
+def job_log(client: httpx.Client, job_id: str) -> str:
+    text, offset = [], 0
+    while True:
+        r = client.get(f"/v1/jobs/{job_id}/log", params={"offset": offset})
+        assert r.status_code == 200, r.text
+        d = r.json()
+        text.append(d["text"])
+        if d["next_offset"] == offset:
+            return "".join(text)
+        offset = d["next_offset"]

@@ -1,0 +1,291 @@
+"""The body of the stage task, kept out of Celery so it can be tested directly.
+
+``execute_stage(rt, job_id, stage, run_id)`` runs one stage of one job run exactly when it should:
+
+- a message for a deleted job, an older run (retried or cancelled since) or a finished job is dropped;
+- the per-job run lock (Redis, renewed by a heartbeat) makes sure one runner at a time; a message that finds
+  it held comes back later (``Outcome.retry_after``): if the holder dies, its lock expires and the comeback
+  (or the broker's redelivery of the holder's own message) takes over;
+- a stage already done in this run only makes sure the next one was sent (crash between the two);
+- the stage itself is ``pipeline.job.run_stage``: its completion marker makes a redelivered stage a no-op, and
+  training resumes from its checkpoint;
+- progress goes to the Redis cache (monotonic) and, every few seconds, to the manifest; cancel is a Redis flag
+  checked by ``should_cancel``.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from service.coord import Coordinator, RunLock
+from service.jobs import JobOps, pipeline_stages
+from service.manifest import TERMINAL_STATES, JobError, Manifest, overall_progress
+from service.settings import Settings
+from service.store import LOG_NAME, JobNotFound, JobStore
+
+log = logging.getLogger(__name__)
+
+MANIFEST_PROGRESS_EVERY_S = 2.0
+LOG_PROGRESS_EVERY_S = 5.0
+CACHE_PROGRESS_EVERY_S = 0.25
+CANCEL_CHECK_EVERY_S = 0.5
+
+
+@dataclass
+class Outcome:
+    status: str  # ran | stale | busy | already_done | cancelled | failed | lost
+    retry_after: float | None = None
+    detail: str = ""
+    next_stage: str | None = None  # the stage to queue after a stage that ran
+
+
+@dataclass
+class Runtime:
+    settings: Settings
+    store: JobStore
+    coord: Coordinator
+    jobs: JobOps
+
+    @classmethod
+    def create(cls, settings: Settings, celery_app) -> Runtime:
+        from service.dispatch import Dispatcher
+
+        store = JobStore(settings.jobs_dir)
+        coord = Coordinator.from_url(settings.redis_url, settings.redis_prefix)
+        return cls(settings, store, coord, JobOps(store, coord, Dispatcher(celery_app, settings.train_queue)))
+
+    def close(self) -> None:
+        self.coord.close()
+
+
+def error_code(exc: BaseException) -> str:
+    """A stable code for a stage failure: the exception's own ``code``, else its class name for the pipeline's
+    typed errors (``TooFewRegisteredError`` -> ``too_few_registered``), else ``stage_failed``."""
+    code = getattr(exc, "code", None)
+    if isinstance(code, str) and code:
+        return code
+    if type(exc).__module__.startswith("pipeline."):
+        name = re.sub(r"Error$", "", type(exc).__name__)
+        return re.sub(r"(?<!^)(?=[A-Z])", "_", name).lower() or "stage_failed"
+    return "stage_failed"
+
+
+def execute_stage(rt: Runtime, job_id: str, stage: str, run_id: str) -> Outcome:
+    try:
+        m = rt.store.read(job_id)
+    except JobNotFound:
+        return Outcome("stale", detail="job deleted")
+    if m.run_id != run_id or m.state in TERMINAL_STATES:
+        return Outcome("stale", detail=f"run {run_id} is not the job's live run")
+    lock = rt.coord.try_run_lock(job_id, rt.settings.lock_ttl_s)
+    if lock is None:
+        return Outcome("busy", retry_after=rt.settings.lock_retry_s, detail="another runner holds the job")
+    try:
+        with job_log(rt.store, job_id):
+            return _execute_locked(rt, job_id, stage, run_id, lock)
+    finally:
+        lock.release()
+
+
+def _execute_locked(rt: Runtime, job_id: str, stage: str, run_id: str, lock: RunLock) -> Outcome:
+    stages = pipeline_stages()
+    if stage not in stages:
+        return Outcome("stale", detail=f"unknown stage {stage!r}")
+
+    with rt.coord.manifest_mutex(job_id):
+        try:
+            m = rt.store.read(job_id)
+        except JobNotFound:
+            return Outcome("stale", detail="job deleted")
+        if m.run_id != run_id or m.state in TERMINAL_STATES:
+            return Outcome("stale", detail="run superseded or finished")
+        rec = m.stage(stage)
+        if rec.status == "done":
+            nxt = next_stage(m, stages)
+            pending_next = nxt is not None and nxt not in m.dispatched
+        else:
+            if m.cancel_requested or rt.coord.cancel_requested(job_id):
+                _finish(m, "cancelled", None, "cancelled before " + stage)
+                rt.store.write(m)
+                return Outcome("cancelled")
+            if rec.status == "running" and rec.attempts >= rt.settings.max_stage_attempts:
+                msg = f"the worker died {rec.attempts} times while running {stage}"
+                _finish(m, "failed", JobError(stage=stage, code="worker_lost", message=msg), msg)
+                rt.store.write(m)
+                return Outcome("failed", detail=msg)
+            rec.status, rec.started_at, rec.finished_at, rec.seconds = "running", time.time(), None, None
+            rec.attempts += 1
+            m.state, m.current_stage, m.message = "running", stage, f"{stage} started"
+            rt.store.write(m)
+            attempt = rec.attempts
+    if rec.status == "done":
+        if pending_next:
+            rt.jobs.dispatch(job_id, run_id, nxt)
+        return Outcome("already_done")
+
+    log.info("job %s: stage %s started (attempt %d, run %s)", job_id, stage, attempt, run_id)
+    reporter = ProgressReporter(rt, job_id, run_id, stages, {s for s in stages if m.stage(s).status == "done"},
+                                floor=m.progress)
+    canceller = CancelCheck(rt.coord, job_id, lock)
+    from pipeline.job import JobCancelled, JobOptions, StageContext, run_stage
+
+    ctx = StageContext(on_progress=reporter, should_cancel=canceller, device=rt.settings.device)
+    t0 = time.time()
+    try:
+        _, skipped = run_stage(rt.store.job_dir(job_id), stage, JobOptions.from_json(m.options), ctx)
+    except JobCancelled as e:
+        if lock.lost.is_set():
+            return Outcome("lost", detail="job lock lost; another runner owns the job")
+        log.info("job %s: %s", job_id, e)
+        return _record_end(rt, job_id, run_id, stage, "cancelled", None, str(e), time.time() - t0)
+    except Exception as e:  # the stage failed: record why; the task itself succeeds (no broker retry)
+        if lock.lost.is_set():
+            return Outcome("lost", detail="job lock lost; another runner owns the job")
+        log.exception("job %s: stage %s failed", job_id, stage)
+        err = JobError(stage=stage, code=error_code(e), message=f"{e}" or type(e).__name__)
+        return _record_end(rt, job_id, run_id, stage, "failed", err, err.message, time.time() - t0)
+    log.info("job %s: stage %s %s in %.1f s", job_id, stage, "skipped (marker matches)" if skipped else "done",
+             time.time() - t0)
+    out = _record_end(rt, job_id, run_id, stage, "done", None, "", time.time() - t0, skipped=skipped,
+                      progress=reporter.value)
+    if out.status == "ran" and out.next_stage is not None:
+        rt.jobs.dispatch(job_id, run_id, out.next_stage)
+    return out
+
+
+def next_stage(m: Manifest, stages: tuple[str, ...]) -> str | None:
+    """The first stage of the pipeline (as this worker knows it) that is not done in the manifest.
+
+    Normally the one after the stage that just finished; if a new version of the pipeline inserted a stage
+    while the job was running, the inserted stage is run too instead of leaving a hole in a finished job."""
+    return next((s for s in stages if m.stage(s).status != "done"), None)
+
+
+def _finish(m: Manifest, state: str, error: JobError | None, message: str) -> None:
+    m.state, m.error, m.message, m.cancel_requested = state, error, message, False
+    run = m.current_run
+    if run is not None and run.outcome is None:
+        run.outcome, run.finished_at = state, time.time()
+
+
+def _record_end(rt: Runtime, job_id: str, run_id: str, stage: str, status: str, error: JobError | None,
+                message: str, seconds: float, skipped: bool = False, progress: float = 0.0) -> Outcome:
+    """Write the stage's end into the manifest; for ``done`` also the job's end or hand-over to the next stage."""
+    stages = pipeline_stages()
+    next_up: str | None = None
+    with rt.coord.manifest_mutex(job_id):
+        try:
+            m = rt.store.read(job_id)
+        except JobNotFound:
+            return Outcome("stale", detail="job deleted while running")
+        if m.run_id != run_id:
+            return Outcome("stale", detail="run superseded while running")
+        rec = m.stage(stage)
+        rec.status, rec.finished_at, rec.seconds, rec.skipped = status, time.time(), round(seconds, 3), skipped
+        done = {s for s in stages if m.stage(s).status == "done"}
+        m.progress = max(m.progress, progress, overall_progress(stages, done, None, 0.0))
+        if status == "cancelled":
+            _finish(m, "cancelled", None, f"cancelled during {stage}")
+        elif status == "failed":
+            _finish(m, "failed", error, message)
+        elif (nxt := next_stage(m, stages)) is None:
+            if m.state != "done":
+                m.completed_runs += 1
+            _finish(m, "done", None, "finished")
+            m.progress, m.current_stage = 100.0, None
+        elif m.cancel_requested or rt.coord.cancel_requested(job_id):
+            _finish(m, "cancelled", None, f"cancelled after {stage}")
+            status = "cancelled"
+        else:
+            m.message = f"{stage} done"
+            next_up = nxt
+        rt.store.write(m)
+        final_progress = m.progress
+    try:
+        rt.coord.push_progress(job_id, run_id, stage, final_progress, m.message)
+    except Exception as e:  # the cache is only a cache
+        log.warning("progress cache unavailable: %s", e)
+    return Outcome({"done": "ran"}.get(status, status), detail=message, next_stage=next_up)
+
+
+class ProgressReporter:
+    """``StageContext.on_progress``: overall 0-100 from stage weights, never decreasing; cache often, manifest
+    and job log now and then."""
+
+    def __init__(self, rt: Runtime, job_id: str, run_id: str, stages: tuple[str, ...], done: set[str],
+                 floor: float):
+        self.rt, self.job_id, self.run_id, self.stages, self.done = rt, job_id, run_id, stages, done
+        self.value = floor
+        self._cache_at = self._manifest_at = self._log_at = 0.0
+
+    def __call__(self, stage: str, fraction: float, message: str) -> None:
+        now = time.time()
+        self.value = max(self.value, overall_progress(self.stages, self.done, stage, fraction))
+        edge = fraction <= 0.0 or fraction >= 1.0
+        if edge or now - self._cache_at >= CACHE_PROGRESS_EVERY_S:
+            self._cache_at = now
+            try:
+                self.value = max(self.value, self.rt.coord.push_progress(self.job_id, self.run_id, stage,
+                                                                         self.value, message))
+            except Exception as e:
+                log.warning("progress cache unavailable: %s", e)
+        if now - self._log_at >= LOG_PROGRESS_EVERY_S:
+            self._log_at = now
+            log.info("job %s: %s %.1f%% %s", self.job_id, stage, self.value, message)
+        if now - self._manifest_at >= MANIFEST_PROGRESS_EVERY_S:
+            self._manifest_at = now
+            with self.rt.coord.manifest_mutex(self.job_id):
+                m = self.rt.store.read(self.job_id)
+                if m.run_id == self.run_id and m.state == "running":
+                    m.progress, m.message, m.current_stage = max(m.progress, self.value), message, stage
+                    self.rt.store.write(m)
+
+
+class CancelCheck:
+    """``StageContext.should_cancel``: the job's Redis cancel flag (polled at most every 0.5 s) or a lost lock."""
+
+    def __init__(self, coord: Coordinator, job_id: str, lock: RunLock):
+        self.coord, self.job_id, self.lock = coord, job_id, lock
+        self._checked_at = 0.0
+        self._cancelled = False
+
+    def __call__(self) -> bool:
+        if self.lock.lost.is_set():
+            return True
+        now = time.monotonic()
+        if not self._cancelled and now - self._checked_at >= CANCEL_CHECK_EVERY_S:
+            self._checked_at = now
+            try:
+                self._cancelled = self.coord.cancel_requested(self.job_id)
+            except Exception as e:
+                log.warning("cannot read the cancel flag: %s", e)
+        return self._cancelled
+
+
+@contextmanager
+def job_log(store: JobStore, job_id: str) -> Iterator[None]:
+    """Copy log records (ours and the pipeline's, INFO and up) into the job's log.txt while a stage runs."""
+    handler = logging.FileHandler(store.job_dir(job_id) / LOG_NAME, encoding="utf-8", delay=True)
+    handler.setLevel(logging.INFO)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s",
+                                           "%Y-%m-%dT%H:%M:%SZ"))
+    handler.formatter.converter = time.gmtime
+    root = logging.getLogger()
+    loggers = [logging.getLogger(n) for n in ("pipeline", "worker", "service")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        if lg.getEffectiveLevel() > logging.INFO:
+            lg.setLevel(logging.INFO)
+    root.addHandler(handler)
+    try:
+        yield
+    finally:
+        root.removeHandler(handler)
+        handler.close()
+        for lg, lvl in zip(loggers, levels):
+            lg.setLevel(lvl)

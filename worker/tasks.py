@@ -1,0 +1,83 @@
+"""Thin Celery tasks: build the runtime from settings, call one function, report. The bodies live in
+``worker.runner`` (stages) and ``service.surveys`` (folder scans) and are tested without Celery."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from service.dispatch import RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK, Dispatcher
+from service.settings import load_settings
+
+from .app import app
+from .process import prepare_stage_process
+from .runner import Runtime, execute_stage
+
+log = logging.getLogger(__name__)
+
+
+@app.task(name=RUN_STAGE_TASK, bind=True, acks_late=True, reject_on_worker_lost=True, max_retries=None,
+          ignore_result=True)
+def run_stage(self, job_id: str, stage: str, run_id: str) -> str:
+    """Run ``stage`` of run ``run_id`` of job ``job_id`` (idempotent; see worker.runner)."""
+    prepare_stage_process()
+    settings = load_settings()
+    rt = Runtime.create(settings, self.app)
+    try:
+        out = execute_stage(rt, job_id, stage, run_id)
+    finally:
+        rt.close()
+    log.info("job %s stage %s: %s %s", job_id, stage, out.status, out.detail)
+    if out.retry_after is not None:
+        raise self.retry(countdown=out.retry_after,
+                         queue=Dispatcher(self.app, settings.train_queue).queue_for(stage))
+    return out.status
+
+
+@app.task(name=SCAN_SURVEYS_TASK, ignore_result=True)
+def scan_surveys() -> int:
+    """Beat's tick: scan every survey whose interval has passed. Returns how many jobs were submitted."""
+    from service.surveys import scan
+
+    settings = load_settings()
+    rt, registry, cfg = _survey_runtime(settings)
+    n = 0
+    try:
+        now = time.time()
+        for survey in registry.all():
+            if now - registry.state(survey.id).last_scan_at < survey.interval_s:
+                continue
+            with rt.coord.scan_lock(survey.id) as got:
+                if got:
+                    n += len(scan(registry, survey, rt.jobs, cfg))
+    finally:
+        rt.close()
+    return n
+
+
+@app.task(name=SCAN_SURVEY_TASK, ignore_result=True)
+def scan_survey(survey_id: str) -> int:
+    """Scan one survey now (``POST /v1/surveys/{id}/scan``)."""
+    from service.surveys import SurveyNotFound, scan
+
+    settings = load_settings()
+    rt, registry, cfg = _survey_runtime(settings)
+    try:
+        try:
+            survey = registry.get(survey_id)
+        except SurveyNotFound:
+            return 0
+        with rt.coord.scan_lock(survey.id) as got:
+            return len(scan(registry, survey, rt.jobs, cfg)) if got else 0
+    finally:
+        rt.close()
+
+
+def _survey_runtime(settings):
+    from service.surveys import ScanConfig, SurveyRegistry
+
+    rt = Runtime.create(settings, app)
+    registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,
+                              settings.survey_min_interval_s)
+    cfg = ScanConfig(min_images=settings.min_images, settle_s=settings.survey_settle_s, gap_s=settings.survey_gap_s)
+    return rt, registry, cfg
