@@ -31,9 +31,13 @@ def rgb_guided_attenuation(D: Tensor, w: Tensor, beta: Tensor, E: Tensor, gamma:
 
 
 class EdgePerception(nn.Module):
-    """E(J, D) ∈ [0, 1]: a 3-layer conv net over [J, D/scale, |∇(D/scale)|] ending in a sigmoid. [N,1,H,W]"""
+    """E(J, D) ∈ [0, 1]: a small conv net over [J, D/scale, |∇(D/scale)|] ending in a sigmoid. [N,1,H,W]
 
-    def __init__(self, hidden: int = 8):
+    Two 3×3 layers (a 5×5 receptive field: edges are local) of 4 channels, then 1×1: it runs at full
+    resolution every step, so it is kept narrow (bench/medium_step.py).
+    """
+
+    def __init__(self, hidden: int = 4):
         super().__init__()
         self.net = nn.Sequential(
             nn.Conv2d(5, hidden, 3, padding=1), nn.ReLU(),
