@@ -9,7 +9,7 @@ Job folder::
       scene/            sfm: images/ (undistorted) + sparse/0 (PINHOLE) + distorted/
       water.json        classify: water type, probabilities, index w, controller settings
       train/            train: latest.pt checkpoint (resume point), train.json (metrics, speed-vs-error)
-      output/           export: reconstruction.ply (more artefacts as the later stages land)
+      output/           export: reconstruction.ply, restored/, with_water/, attenuation/, backscatter/, depth/
       .stages/<stage>.json   completion markers (config hash + result)
 
 A stage's config hash covers its own options and the hashes of the stages before it, so changing an upstream
@@ -152,7 +152,7 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
                     device=ctx.device)
     except TrainingCancelled as e:
         raise JobCancelled(str(e)) from e
-    out = {"iterations": res.iteration, "metrics": res.metrics, "history": res.history,
+    out = {"iterations": res.iteration, "metrics": res.metrics, "history": res.history, "medium": res.medium,
            "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
            "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale}
     atomic_write_json(job / "train" / "train.json", out)
@@ -160,14 +160,23 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
 
 def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    """reconstruction.ply plus restored/, with_water/, attenuation/, backscatter/, depth/ for every input
+    view (training and held-out alike), at the resolution training used."""
     from .checkpoint import load_checkpoint
+    from .restore import export_views
+    from .scene.loader import load_scene
+    from .scene.types import View
     from .splat.ply import export_ply
 
     state = load_checkpoint(job / "train" / "latest.pt")
     out = job / "output"
     out.mkdir(parents=True, exist_ok=True)
     data = export_ply(state["gaussians"], out / "reconstruction.ply")
-    return {"reconstruction.ply": len(data)}
+    down = int(state["config"].get("downscale", 1))
+    views = [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
+             for v in load_scene(job / "scene").views]
+    counts = export_views(state, views, out)
+    return {"reconstruction.ply": len(data), **counts}
 
 
 STAGE_FUNCTIONS: dict[str, Callable[[Path, JobOptions, StageContext], dict]] = {

@@ -81,6 +81,7 @@ class TrainResult:
     history: list[dict[str, float]] = field(default_factory=list)  # held-out: iteration, elapsed_s, psnr
     checkpoint: Path | None = None
     elapsed_s: float = 0.0  # training seconds (steps only), summed across resumes
+    medium: dict[str, Any] = field(default_factory=dict)  # medium modes: recovered per-channel coefficients
 
 
 def photometric_losses(render: Tensor, target: Tensor, ssim_weight: float) -> dict[str, Tensor]:
@@ -315,4 +316,6 @@ def train(
         raise
     if ckpt is not None:
         trainer.save(ckpt)
-    return TrainResult(trainer.gaussians, trainer.iteration, metrics, trainer.history, ckpt, trainer.elapsed_s)
+    medium = trainer.medium.effective_coefficients() if trainer.medium is not None else {}
+    return TrainResult(trainer.gaussians, trainer.iteration, metrics, trainer.history, ckpt, trainer.elapsed_s,
+                       medium)

@@ -118,7 +118,7 @@ class MediumTerm:
         with torch.no_grad():
             bd = (m.w * m.beta_D * m.water_factor).tolist()
             return {"beta_D": bd, "beta_B": m.beta_B.tolist(), "B_inf": m.B_inf.tolist(),
-                    "depth_scale": self.depth_scale}
+                    "depth_scale": self.depth_scale, "units": "1/scene-unit (x metric scale for 1/m)"}
 
     def state_dict(self) -> dict[str, Any]:
         return {"mode": self.mode, "config": asdict(self.cfg), "module": self.medium.state_dict(),
