@@ -111,6 +111,7 @@ def apply_water_decision(cfg, decision: dict) -> None:
     m.lr_attenuation, m.lr_scattering = decision["lr_attenuation"], decision["lr_scattering"]
     m.alpha_w, m.beta_w = decision["alpha"], decision["beta"]
     m.start_fraction = decision["medium_start_fraction"]
+    m.init_optical_depth = tuple(decision.get("init_optical_depth", m.init_optical_depth))  # type: ignore[assignment]
 
 
 def train_config(opts: JobOptions, width: int):

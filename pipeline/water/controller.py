@@ -17,6 +17,11 @@ The paper's rule, and how we read it where the wording is ambiguous:
 - Schedule: 30,000 iterations with underwater colour rendering (the medium) switched on at 10,000. Shorter
   runs keep the same fraction (1/3); :func:`medium_start_iteration` maps total iterations → start.
 
+- Starting point (ours, not the paper's): the medium's initial optical depth β·(median scene depth) per
+  channel follows the class — the colour cast the classifier recognises *is* an optical depth, so starting
+  there is a measurement, not a guess. Without it, turbid scenes ended a short run with the medium carrying
+  under half the true backscatter (tests/test_no_collapse.py).
+
 The factors are fields of :class:`ControllerConfig`, so the literal reading is one config change away.
 """
 
@@ -46,6 +51,10 @@ class ControllerConfig:
     turbid_alpha: float = 0.8
     turbid_beta: float = 1.2
     medium_start_fraction: float = PAPER_MEDIUM_START / PAPER_ITERATIONS  # medium on at this fraction of the run
+    # Initial β·(median depth) per channel (R, G, B) for each class: where the medium starts.
+    clear_optical_depth: tuple[float, float, float] = (0.6, 0.15, 0.1)
+    medium_optical_depth: tuple[float, float, float] = (0.8, 0.3, 0.25)
+    turbid_optical_depth: tuple[float, float, float] = (1.5, 0.9, 1.0)
 
 
 @dataclass(frozen=True)
@@ -58,6 +67,7 @@ class ControllerSettings:
     alpha: float  # α(w): weight of L_attenuation in L_wat
     beta: float  # β(w): weight of L_scattering in L_wat
     medium_start_fraction: float  # fraction of the run after which the medium is switched on
+    init_optical_depth: tuple[float, float, float] = (0.8, 0.3, 0.25)  # β·(median depth) the medium starts from
 
     def medium_start(self, total_iterations: int) -> int:
         """Iteration at which the medium switches on for a run of ``total_iterations``."""
@@ -76,11 +86,12 @@ def controller_settings(water_type: str, cfg: ControllerConfig | None = None) ->
     """
     cfg = cfg or ControllerConfig()
     if water_type == "clear":
-        factor, alpha, beta = cfg.clear_lr_factor, cfg.clear_alpha, cfg.clear_beta
+        factor, alpha, beta, tau = cfg.clear_lr_factor, cfg.clear_alpha, cfg.clear_beta, cfg.clear_optical_depth
     elif water_type == "turbid":
         factor, alpha, beta = cfg.turbid_lr_factor, cfg.turbid_alpha, cfg.turbid_beta
+        tau = cfg.turbid_optical_depth
     elif water_type == "medium":
-        factor, alpha, beta = 1.0, 1.0, 1.0
+        factor, alpha, beta, tau = 1.0, 1.0, 1.0, cfg.medium_optical_depth
     else:
         raise ValueError(f"unknown water type {water_type!r}; expected one of {WATER_TYPES}")
     return ControllerSettings(
@@ -90,6 +101,7 @@ def controller_settings(water_type: str, cfg: ControllerConfig | None = None) ->
         alpha=alpha,
         beta=beta,
         medium_start_fraction=cfg.medium_start_fraction,
+        init_optical_depth=tau,
     )
 
 
