@@ -185,7 +185,7 @@ class TrainConfig:
             raise ValueError(f"background must have 3 components, got {self.background}")
 
 
-def _train_preset(iterations: int, checkpoint_every: int, max_gaussians: int = 0) -> TrainConfig:
+def scaled_train_config(iterations: int, checkpoint_every: int, max_gaussians: int = 0) -> TrainConfig:
     """A run of ``iterations`` with the 30k schedule (densification, SH warm-up) compressed to fit
     (``DensifyConfig.scaled``); ``max_gaussians`` 0 = no cap."""
     factor = iterations / 30_000
@@ -202,9 +202,9 @@ def _train_preset(iterations: int, checkpoint_every: int, max_gaussians: int = 0
 # paper: graphdeco's 30k recipe unchanged, no cap.
 # Copy before editing (`train_preset`): the instances here are shared.
 TRAIN_PRESETS: dict[str, TrainConfig] = {
-    "fast": _train_preset(3_000, checkpoint_every=500, max_gaussians=100_000),
-    "balanced": _train_preset(10_000, checkpoint_every=1000, max_gaussians=300_000),
-    "paper": _train_preset(30_000, checkpoint_every=2000, max_gaussians=0),
+    "fast": scaled_train_config(3_000, checkpoint_every=500, max_gaussians=100_000),
+    "balanced": scaled_train_config(10_000, checkpoint_every=1000, max_gaussians=300_000),
+    "paper": scaled_train_config(30_000, checkpoint_every=2000, max_gaussians=0),
 }
 
 
@@ -214,6 +214,6 @@ def train_preset(name: str) -> TrainConfig:
         raise ValueError(f"unknown training preset {name!r}; choose from {sorted(TRAIN_PRESETS)}")
     return from_dict(TrainConfig, to_dict(TRAIN_PRESETS[name]))
 
-__all__ += ["DensifyConfig", "TrainConfig", "TRAIN_PRESETS", "train_preset"]
+__all__ += ["DensifyConfig", "TrainConfig", "TRAIN_PRESETS", "train_preset", "scaled_train_config"]
 
 __all__ += ["MediumConfig"]

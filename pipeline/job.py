@@ -120,9 +120,10 @@ def train_config(opts: JobOptions, width: int):
 
     cfg = train_preset(opts.preset)
     if opts.iterations is not None:
-        from .config import _train_preset
+        from .config import scaled_train_config
 
-        cfg = _train_preset(opts.iterations, checkpoint_every=max(1, opts.iterations // 5))
+        cfg = scaled_train_config(opts.iterations, checkpoint_every=max(1, opts.iterations // 5),
+                                  max_gaussians=300_000)
     cfg.seed = opts.seed
     cfg.mode = opts.mode  # type: ignore[assignment]
     cfg.downscale = max(1, math.ceil(width / opts.max_width))
