@@ -76,3 +76,17 @@ def test_ingest_stage_runs_once_and_cancel_is_honoured(tmp_path: Path) -> None:
     assert JobOptions.from_json(opts.to_json()) == opts
     with pytest.raises(ValueError):
         JobOptions.from_json({"sourse": "typo"})
+
+
+def test_cancel_interrupts_a_running_sfm(tmp_path: Path) -> None:
+    import time
+
+    src = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "ruie-A188-A206" / "images"
+    opts = JobOptions(source=str(src))
+    job = tmp_path / "job"
+    run_stage(job, "ingest", opts)
+    t0 = time.monotonic()
+    with pytest.raises(JobCancelled):
+        run_stage(job, "sfm", opts, StageContext(should_cancel=lambda: time.monotonic() - t0 > 1.0))
+    assert time.monotonic() - t0 < 12.0  # interrupted: pycolmap answers a cancel within ~1.5 s (a full run is 7-15 s)
+    assert first_unfinished(job, opts) == "sfm"  # no marker: a retry runs it again
