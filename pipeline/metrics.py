@@ -8,12 +8,12 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
 import torch
 
+from .image_losses import psnr_from_mse
 from .image_losses import ssim as _ssim
 
 
@@ -31,9 +31,7 @@ def pooled_mse(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> float:
     return se / n
 
 
-def psnr(mse: float) -> float:
-    """PSNR in dB for images in [0, 1] (inf for a perfect match)."""
-    return math.inf if mse <= 0 else -10.0 * math.log10(mse)
+psnr = psnr_from_mse  # PSNR in dB for images in [0, 1] (inf for a perfect match)
 
 
 def pooled_psnr(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> float:

@@ -1,19 +1,17 @@
 """Render Gaussian parameters from a posed ``View``: the one place turning parameters into rasterizer inputs.
 
-Used by training (every iteration) and by evaluation/export (held-out views, restored images);
-``evaluate_psnr`` scores held-out views.
+Used by training (every iteration) and by export (restored images, via ``pipeline.restore``);
+held-out scoring goes through ``Trainer.predict``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
 
-from pipeline.image_losses import pooled_psnr
 from pipeline.scene.types import View
 from pipeline.splat.gaussians import activate, num_sh_bases, sh_degree_of
 
@@ -99,20 +97,3 @@ def render_view(
         backend=backend,
         render_mode=render_mode,
     )
-
-
-@torch.no_grad()
-def evaluate_psnr(
-    params: nn.ParameterDict | dict[str, Tensor],
-    views: Sequence[View],
-    targets: Sequence[Tensor],  # [H, W, 3] each, at the views' camera sizes
-    *,
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    backend: str = "auto",
-) -> float:
-    """Held-out PSNR from the MSE pooled over all pixels of all views (renders clamped to [0, 1])."""
-    pairs = []
-    for view, target in zip(views, targets, strict=True):
-        out = render_view(params, view, background=background, backend=backend)
-        pairs.append((out.image.clamp(0.0, 1.0), torch.as_tensor(target).to(out.image.device)))
-    return pooled_psnr(pairs)

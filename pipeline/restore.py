@@ -45,10 +45,12 @@ def medium_from_state(mode: str, sd: dict[str, Any]) -> Medium:
 
 
 def render_outputs(gaussians: dict[str, torch.Tensor], view: View, medium: Medium | None, sh_degree: int,
-                   backend: str = "auto") -> ViewOutputs:
-    """Everything the user can look at for one view."""
+                   backend: str = "auto", background: tuple[float, float, float] | torch.Tensor = (0.0, 0.0, 0.0),
+                   ) -> ViewOutputs:
+    """Everything the user can look at for one view (the one place a view is rendered through the medium)."""
     with torch.no_grad():
-        out = render_view(gaussians, view, sh_degree=sh_degree, backend=backend, render_mode="RGB+ED")
+        out = render_view(gaussians, view, sh_degree=sh_degree, backend=backend, render_mode="RGB+ED",
+                          background=background)
         assert out.depth is not None
         J = out.image.clamp(0, 1)
         alpha, z = out.alpha[..., 0], out.depth[..., 0]

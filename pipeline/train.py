@@ -28,7 +28,8 @@ from pipeline.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.config import TrainConfig, from_dict, to_dict
 from pipeline.image_losses import l1, ssim
 from pipeline.medium.term import MediumTerm
-from pipeline.render_view import RenderOutput, evaluate_psnr, render_gaussians, render_view, view_tensors
+from pipeline.render_view import RenderOutput, render_gaussians, render_view, view_tensors
+from pipeline.restore import render_outputs
 from pipeline.scene.types import Scene, View
 from pipeline.splat.densify import Densifier
 from pipeline.splat.gaussians import GAUSSIAN_KEYS
@@ -51,7 +52,6 @@ __all__ = [
     "TrainResult",
     "Trainer",
     "TrainingCancelled",
-    "evaluate_psnr",
     "photometric_losses",
     "render_view",
     "scene_extent",
@@ -154,16 +154,9 @@ class Trainer:
 
     def predict(self, view: View) -> Tensor:
         """The photo this model predicts for ``view`` (with water in medium modes), clamped. [H, W, 3]"""
-        with torch.no_grad():
-            if self.medium is None or not self.medium_on(self.iteration):
-                out = render_view(self.gaussians, view, sh_degree=self.max_sh_degree, background=self.background,
-                                  backend=self.cfg.backend)
-                return out.image.clamp(0.0, 1.0)
-            out = render_view(self.gaussians, view, sh_degree=self.max_sh_degree, background=self.background,
-                              backend=self.cfg.backend, render_mode="RGB+ED")
-            assert out.depth is not None
-            med, _ = self.medium.apply_camera(view.camera, out.image, out.alpha, out.depth)
-            return med.I[0].permute(1, 2, 0).clamp(0.0, 1.0)
+        medium = self.medium.medium if self.medium is not None and self.medium_on(self.iteration) else None
+        out = render_outputs(self.gaussians, view, medium, self.max_sh_degree, self.cfg.backend, self.background)
+        return torch.from_numpy(out.I)
 
     def step(self) -> dict[str, float]:
         """One iteration: render a view, loss, backward, Adam, densification."""

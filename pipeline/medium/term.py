@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ..config import MediumConfig
 from ..losses import LossWeights, basic_loss, loss_terms
-from ..scene.types import Camera, Scene, View, ray_length_factor
+from ..scene.types import Scene, View, ray_length_factor
 from .model import Medium, MediumOutput
 
 log = logging.getLogger(__name__)
@@ -87,12 +87,6 @@ class MediumTerm:
     def apply(self, view_index: int, J: Tensor, alpha: Tensor, depth: Tensor) -> tuple[MediumOutput, Tensor]:
         """J [H,W,3] premultiplied, alpha [H,W,1], z-depth [H,W,1] → (medium output NCHW, range D [1,1,H,W])."""
         D = _nchw(depth) * self.ray[view_index]
-        return self.medium(_nchw(J), D, _nchw(alpha)), D
-
-    def apply_camera(self, camera: Camera, J: Tensor, alpha: Tensor, depth: Tensor) -> tuple[MediumOutput, Tensor]:
-        """As :meth:`apply` for any camera (held-out and novel views)."""
-        ray = torch.as_tensor(ray_length_factor(camera), dtype=J.dtype, device=J.device)[None, None]
-        D = _nchw(depth) * ray
         return self.medium(_nchw(J), D, _nchw(alpha)), D
 
     def losses(self, view_index: int, J: Tensor, alpha: Tensor, depth: Tensor, target: Tensor) -> dict[str, Tensor]:

@@ -266,22 +266,6 @@ def repack_features(rows, pair_item, items, features):
     return out
 
 
-@njit(inline="always")
-def _tile_pixels(t, ntx, ntile, width, height, px, py, inside):
-    """Pixel-centre coordinates and in-image flags of tile t's 64 lanes; returns (camera, x0, y0)."""
-    c = t // ntile
-    r = t - c * ntile
-    y0 = (r // ntx) * TILE
-    x0 = (r - (r // ntx) * ntx) * TILE
-    for p in range(LANES):
-        x = x0 + (p % TILE)
-        y = y0 + (p // TILE)
-        px[p] = np.float32(x) + _HALF
-        py[p] = np.float32(y) + _HALF
-        inside[p] = x < width and y < height
-    return c, x0, y0
-
-
 @njit(parallel=True, cache=True)
 def raster_fwd(rows, tile_offsets, width, height, backgrounds, out, out_t, masks, tile_end):
     """Composite every tile front to back.
