@@ -4,11 +4,17 @@ every new image set becomes exactly one job.
 Grouping rule (also in docs/SERVICE.md):
 
 - Every immediate sub-folder of the survey folder is one set (all images below it, at any depth).
-- Images lying directly in the survey folder are ordered by capture time (the file's modification time; the
-  ROV writes each frame as it takes it) and split into sets wherever two consecutive images are more than
-  ``survey_gap_s`` apart.
-- A set is submitted when it has at least ``min_images`` images and its newest image is at least
-  ``survey_settle_s`` old (the ROV has stopped writing to it).
+- Images lying directly in the survey folder are ordered by capture time and split into sets wherever two
+  consecutive images are more than ``survey_gap_s`` apart; a set is named after its first capture time
+  (``%Y%m%dT%H%M%SZ``, UTC). The capture time is the image's EXIF ``DateTimeOriginal`` plus
+  ``SubSecTimeOriginal`` and ``OffsetTimeOriginal`` when present; without an offset the EXIF time is read as
+  UTC (cameras record local time without a zone, so a set name may then be the camera's local time labelled
+  ``Z``; gaps are unaffected). An image without a usable EXIF time (no Exif block, no tag, a malformed or
+  pre-1970 date, or a format other than JPEG, TIFF and PNG) uses its file modification time instead. Only the
+  file's header is read (:func:`read_exif_time`), once per (path, size, mtime_ns): the result is cached in the
+  survey's scan state.
+- A set is submitted when it has at least ``min_images`` images and its newest image (by modification time, not
+  capture time) is at least ``survey_settle_s`` old (the ROV has stopped writing to it).
 - Identity is content: the set's hash covers every image's relative path and SHA-256. The job id is derived
   from (survey, set hash), and a job folder that exists is never created again, so re-scans, concurrent
   scanners and restarts of beat or workers never submit a set twice. A set that changes after submission
@@ -24,12 +30,16 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import re
 import secrets
 import shutil
+import struct
 import time
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime, timedelta, timezone
 from pathlib import Path, PurePosixPath
+from typing import BinaryIO
 
 from pydantic import BaseModel, Field, ValidationError
 
@@ -42,6 +52,11 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".webp", ".bmp", ".jp2", ".jxl",
                             ".dpx", ".tga", ".ppm", ".pgm", ".hdr"})
 HASH_CHUNK = 1 << 20
+# Exif tags (CIPA DC-008): the Exif sub-IFD pointer in IFD0, and the capture-time tags inside it
+TAG_EXIF_IFD, TAG_DATETIME_ORIGINAL, TAG_OFFSET_ORIGINAL, TAG_SUBSEC_ORIGINAL = 0x8769, 0x9003, 0x9011, 0x9291
+MAX_HEADER_SEGMENTS = 64  # JPEG segments / PNG chunks looked at before giving up on finding Exif
+MAX_IFD_ENTRIES = 1024
+MAX_TIME_TAG_BYTES = 64  # a date is 20 bytes; anything much longer is not one
 
 
 class SurveyError(ValueError):
@@ -91,6 +106,8 @@ class SurveyState(BaseModel):
     last_error: str | None = None
     sets: dict[str, SubmittedSet] = Field(default_factory=dict)  # set hash -> job
     digests: dict[str, tuple[int, int, str]] = Field(default_factory=dict)  # rel path -> (size, mtime_ns, sha256)
+    # loose images only: rel path -> (size, mtime_ns, EXIF capture time or None when the file has none)
+    exif_times: dict[str, tuple[int, int, float | None]] = Field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -99,6 +116,12 @@ class ImageFile:
     size: int
     mtime: float
     mtime_ns: int
+    exif_time: float | None = None  # EXIF capture time (Unix seconds); None: not read, or the file has none
+
+    @property
+    def capture_time(self) -> float:
+        """When the image was taken: its EXIF time when it has one, else its modification time."""
+        return self.mtime if self.exif_time is None else self.exif_time
 
 
 @dataclass
@@ -108,6 +131,7 @@ class ImageSet:
 
     @property
     def newest(self) -> float:
+        """The newest modification time (the settle rule is about the ROV still writing, not capture time)."""
         return max(f.mtime for f in self.files)
 
 
@@ -177,10 +201,10 @@ def group_images(files: list[ImageFile], gap_s: float) -> list[ImageSet]:
         else:
             by_folder.setdefault(parts[0], []).append(f)
     sets = [ImageSet(name, sorted(fs, key=lambda f: f.rel)) for name, fs in sorted(by_folder.items())]
-    top.sort(key=lambda f: (f.mtime, f.rel))
+    top.sort(key=lambda f: (f.capture_time, f.rel))
     group: list[ImageFile] = []
     for f in top:
-        if group and f.mtime - group[-1].mtime > gap_s:
+        if group and f.capture_time - group[-1].capture_time > gap_s:
             sets.append(_time_set(group))
             group = []
         group.append(f)
@@ -190,7 +214,157 @@ def group_images(files: list[ImageFile], gap_s: float) -> list[ImageSet]:
 
 
 def _time_set(files: list[ImageFile]) -> ImageSet:
-    return ImageSet(time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(files[0].mtime)), sorted(files, key=lambda f: f.rel))
+    """A set of loose images named after its first capture time (UTC)."""
+    first = min(f.capture_time for f in files)
+    return ImageSet(time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(first)), sorted(files, key=lambda f: f.rel))
+
+
+# ---------------------------------------------------------------- capture time (EXIF header)
+
+
+def with_exif_times(root: Path, files: list[ImageFile],
+                    cache: dict[str, tuple[int, int, float | None]]) -> list[ImageFile]:
+    """``files`` with ``exif_time`` filled in for the loose images (those directly in ``root``).
+
+    ``cache`` (the survey state's ``exif_times``) is updated in place: a file whose size and mtime_ns match its
+    entry is not opened again, and entries of files that are gone are dropped."""
+    out: list[ImageFile] = []
+    loose: set[str] = set()
+    for f in files:
+        if "/" in f.rel:
+            out.append(f)
+            continue
+        loose.add(f.rel)
+        known = cache.get(f.rel)
+        if known is None or known[0] != f.size or known[1] != f.mtime_ns:
+            known = cache[f.rel] = (f.size, f.mtime_ns, read_exif_time(root / f.rel))
+        out.append(replace(f, exif_time=known[2]))
+    for rel in [k for k in cache if k not in loose]:
+        del cache[rel]
+    return out
+
+
+def read_exif_time(path: Path) -> float | None:
+    """The EXIF capture time of a JPEG, TIFF or PNG file as Unix seconds, or None when it has no usable one.
+
+    Reads only the header (the Exif block precedes the pixels; typically one 4 KiB read), never decodes. A small
+    parser of its own rather than ``OpenImageIO.ImageInput.open(...).spec()``, which reads the same 4 KiB: on
+    200 JPEGs of 2 MB it took 76-131 us per file (page cache) and 177-223 us (evicted) against OpenImageIO's
+    120-202 us and 244-303 us (min-median of 11 rounds on a busy 2-core machine)."""
+    try:
+        with open(path, "rb") as f:
+            tags = _exif_time_tags(f)
+    except (OSError, ValueError, struct.error) as e:
+        log.debug("%s: unreadable Exif header (%s); using the file time", path, e)
+        return None
+    t = exif_timestamp(tags.get(TAG_DATETIME_ORIGINAL), tags.get(TAG_SUBSEC_ORIGINAL), tags.get(TAG_OFFSET_ORIGINAL))
+    if t is None and tags.get(TAG_DATETIME_ORIGINAL):
+        log.warning("%s: EXIF DateTimeOriginal %r is not a date; using the file time", path,
+                    tags[TAG_DATETIME_ORIGINAL])
+    return t
+
+
+def _exif_time_tags(f: BinaryIO) -> dict[int, str]:
+    """The capture-time tags of an open image file ({} when it has no Exif block)."""
+    head = f.read(8)
+    if head[:2] == b"\xff\xd8":
+        base = _jpeg_exif_base(f)
+    elif head[:4] in (b"II*\0", b"MM\0*"):
+        base = 0
+    elif head == b"\x89PNG\r\n\x1a\n":
+        base = _png_exif_base(f)
+    else:
+        return {}
+    return {} if base is None else _tiff_time_tags(f, base)
+
+
+def _jpeg_exif_base(f: BinaryIO) -> int | None:
+    """Offset of the TIFF header inside the JPEG's ``Exif`` APP1 segment; None when there is none before the scan."""
+    pos = 2
+    for _ in range(MAX_HEADER_SEGMENTS):
+        f.seek(pos)
+        seg = f.read(10)
+        if len(seg) < 4 or seg[0] != 0xFF or seg[1] in (0xD9, 0xDA):  # end of image / start of scan
+            return None
+        if seg[1] == 0xE1 and seg[4:10] == b"Exif\0\0":
+            return pos + 10
+        pos += 2 + int.from_bytes(seg[2:4], "big")
+    return None
+
+
+def _png_exif_base(f: BinaryIO) -> int | None:
+    """Offset of the PNG's ``eXIf`` chunk data (a TIFF header); None when there is none before the pixels."""
+    pos = 8
+    for _ in range(MAX_HEADER_SEGMENTS):
+        f.seek(pos)
+        chunk = f.read(8)
+        if len(chunk) < 8 or chunk[4:] in (b"IDAT", b"IEND"):
+            return None
+        if chunk[4:] == b"eXIf":
+            return pos + 8
+        pos += 12 + int.from_bytes(chunk[:4], "big")
+    return None
+
+
+def _tiff_time_tags(f: BinaryIO, base: int) -> dict[int, str]:
+    """DateTimeOriginal, SubSecTimeOriginal and OffsetTimeOriginal from the Exif IFD of the TIFF at ``base``."""
+    f.seek(base)
+    head = f.read(8)
+    order = {b"II": "<", b"MM": ">"}.get(head[:2])
+    if order is None or struct.unpack(order + "H", head[2:4])[0] != 42:
+        return {}
+    ifd0 = _read_ifd(f, base, order, struct.unpack(order + "I", head[4:8])[0])
+    pointer = ifd0.get(TAG_EXIF_IFD)
+    if pointer is None or pointer[0] not in (4, 13):  # LONG or IFD
+        return {}
+    exif = _read_ifd(f, base, order, struct.unpack(order + "I", pointer[2])[0])
+    return {tag: _read_ascii(f, base, order, *exif[tag][1:]) for tag in
+            (TAG_DATETIME_ORIGINAL, TAG_SUBSEC_ORIGINAL, TAG_OFFSET_ORIGINAL) if tag in exif and exif[tag][0] == 2}
+
+
+def _read_ifd(f: BinaryIO, base: int, order: str, offset: int) -> dict[int, tuple[int, int, bytes]]:
+    """One IFD: tag -> (type, count, the 4 value-or-offset bytes)."""
+    f.seek(base + offset)
+    (n,) = struct.unpack(order + "H", f.read(2))
+    if n > MAX_IFD_ENTRIES:
+        raise ValueError(f"implausible IFD with {n} entries")
+    data = f.read(12 * n)
+    out = {}
+    for i in range(0, len(data) - 11, 12):
+        tag, kind, count = struct.unpack(order + "HHI", data[i:i + 8])
+        out[tag] = (kind, count, data[i + 8:i + 12])
+    return out
+
+
+def _read_ascii(f: BinaryIO, base: int, order: str, count: int, value: bytes) -> str:
+    """An ASCII tag's text (up to its first NUL); '' for one too long to be a time."""
+    if count > MAX_TIME_TAG_BYTES:
+        return ""
+    if count > 4:
+        f.seek(base + struct.unpack(order + "I", value)[0])
+        value = f.read(count)
+    return value[:count].split(b"\0", 1)[0].decode("ascii", "replace")
+
+
+_UTC_OFFSET = re.compile(r"([+-])(\d\d):(\d\d)")
+
+
+def exif_timestamp(original: str | None, subsec: str | None, offset: str | None) -> float | None:
+    """Unix seconds from EXIF ``YYYY:MM:DD HH:MM:SS``, fractional digits and ``±HH:MM`` (UTC without one);
+    None for a missing, malformed or pre-1970 date."""
+    try:
+        dt = datetime.strptime((original or "").strip(), "%Y:%m:%d %H:%M:%S")
+    except ValueError:
+        return None
+    if dt.year < 1970:
+        return None
+    tz = UTC
+    m = _UTC_OFFSET.fullmatch((offset or "").strip())
+    if m and int(m[2]) < 24 and int(m[3]) < 60:
+        tz = timezone((-1 if m[1] == "-" else 1) * timedelta(hours=int(m[2]), minutes=int(m[3])))
+    t = dt.replace(tzinfo=tz).timestamp()
+    digits = (subsec or "").strip()
+    return t + int(digits) / 10 ** len(digits) if digits.isdigit() else t
 
 
 def file_sha256(path: Path) -> str:
@@ -319,7 +493,7 @@ def scan(registry: SurveyRegistry, survey: Survey, jobs, cfg: ScanConfig, now: f
     try:
         if not root.is_dir():
             raise FileNotFoundError(f"survey folder {root} is missing")
-        files = list_images(root)
+        files = with_exif_times(root, list_images(root), state.exif_times)
         present = {f.rel for f in files}
         state.digests = {k: v for k, v in state.digests.items() if k in present}
         for image_set in group_images(files, cfg.gap_s):
