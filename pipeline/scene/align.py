@@ -7,9 +7,11 @@ the errors measured after alignment.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from .types import Scene
+from .types import Scene, View
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -48,6 +50,43 @@ def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(sin, cos))
 
 
+@dataclass(frozen=True)
+class Similarity:
+    """``x_ref = scale * R @ x_est + t``: maps an estimated scene's world into a reference world."""
+
+    scale: float  # reference units per estimated unit (metres per scene unit against a metric reference)
+    R: np.ndarray  # [3, 3]
+    t: np.ndarray  # [3]
+
+
+def _common_views(est: Scene, ref: Scene) -> list[tuple[View, View]]:
+    ref_by_name = {v.name: v for v in ref.views}
+    pairs = sorted(((v, ref_by_name[v.name]) for v in est.views if v.name in ref_by_name), key=lambda p: p[0].name)
+    if len(pairs) < 3:
+        raise ValueError(f"align_to_reference: need >= 3 views common to both scenes, found {len(pairs)}")
+    return pairs
+
+
+def fit_similarity(est: Scene, ref: Scene) -> Similarity:
+    """The similarity taking ``est``'s camera centres onto ``ref``'s (views matched by name, >= 3 common)."""
+    pairs = _common_views(est, ref)
+    s, R, t = umeyama(np.stack([e.center for e, _ in pairs]), np.stack([r.center for _, r in pairs]))
+    return Similarity(s, R, t)
+
+
+def view_in_estimated_frame(ref_view: View, sim: Similarity) -> View:
+    """A reference camera expressed in the estimated scene's world (same intrinsics and name), so a model
+    trained in that world can be rendered from the true pose. Camera-space depth comes out in estimated units
+    (reference depth / ``sim.scale``).
+
+    With x_ref = s A x_est + b: x_cam = R_ref x_ref + t_ref = s (R_ref A x_est + (R_ref b + t_ref) / s), and the
+    overall factor s changes no pixel, only the depth's unit.
+    """
+    R = ref_view.R @ sim.R
+    t = (ref_view.R @ sim.t + ref_view.t) / sim.scale
+    return View(ref_view.name, ref_view.camera, R, t, ref_view.image_path)
+
+
 def align_to_reference(est: Scene, ref: Scene) -> dict[str, float]:
     """Align ``est`` camera centres to ``ref`` (views matched by name) and measure the pose errors.
 
@@ -57,12 +96,7 @@ def align_to_reference(est: Scene, ref: Scene) -> dict[str, float]:
     ``center_err_rel_mean/max`` (centre errors divided by the path length). Needs >= 3 common views with
     distinct centres.
     """
-    ref_by_name = {v.name: v for v in ref.views}
-    pairs = sorted(
-        ((v, ref_by_name[v.name]) for v in est.views if v.name in ref_by_name), key=lambda p: p[0].name
-    )
-    if len(pairs) < 3:
-        raise ValueError(f"align_to_reference: need >= 3 views common to both scenes, found {len(pairs)}")
+    pairs = _common_views(est, ref)
     c_est = np.stack([e.center for e, _ in pairs])  # [N, 3]
     c_ref = np.stack([r.center for _, r in pairs])  # [N, 3]
     s, A, b = umeyama(c_est, c_ref)
@@ -86,4 +120,5 @@ def align_to_reference(est: Scene, ref: Scene) -> dict[str, float]:
     }
 
 
-__all__ = ["align_to_reference", "rotation_angle_deg", "umeyama"]
+__all__ = ["Similarity", "align_to_reference", "fit_similarity", "rotation_angle_deg", "umeyama",
+           "view_in_estimated_frame"]

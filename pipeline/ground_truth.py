@@ -1,0 +1,82 @@
+"""Ground truth for a job whose images came from our scene generator (``pipeline.scene.synth``).
+
+A generated scene folder holds ``images/`` (what the job ingests), ``clean/`` (the true restored radiance J),
+``depth/*.npy`` (camera-space z in metres), ``sparse_gt/`` (the true cameras, metres) and ``water.json`` (the
+true β_D, β_B, B∞ and the generator's config). A job finds it either through ``JobOptions.ground_truth`` (the
+scene folder) or, when that is unset, because its source is a folder named ``images`` inside such a scene.
+Nothing else counts as ground truth: a folder must carry the generator's ``water.json`` and ``clean/``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .scene.images import resize_area_to
+from .scene.loader import load_scene, load_view_image
+from .scene.types import Scene, View
+
+log = logging.getLogger(__name__)
+
+
+class GroundTruthError(ValueError):
+    """A folder given as ground truth is not a generated scene."""
+
+
+@dataclass
+class GroundTruth:
+    """A generated scene's truth."""
+
+    root: Path
+    scene: Scene  # the true PINHOLE cameras (world in metres), views named as the images
+    water: dict  # water.json: preset, beta_D, beta_B (1/m), B_inf, generator config
+
+    def clean(self, view: View) -> np.ndarray:
+        """The true clean radiance of ``view.name`` at ``view.camera``'s size (area-averaged).  # [h, w, 3]"""
+        return load_view_image(View(view.name, view.camera, view.R, view.t, self.root / "clean" / view.name))
+
+    def depth(self, view: View) -> np.ndarray:
+        """True camera-space z (metres) of ``view.name`` at ``view.camera``'s size (area-averaged).  # [h, w]"""
+        z = np.load(self.root / "depth" / f"{Path(view.name).stem}.npy")
+        return resize_area_to(z, (view.camera.height, view.camera.width))
+
+
+def is_generated_scene(root: str | Path) -> bool:
+    """True when ``root`` looks like the generator's output (water.json with its config, clean/, sparse_gt/)."""
+    root = Path(root)
+    try:
+        meta = json.loads((root / "water.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return (isinstance(meta, dict) and "generator" in meta and "beta_D" in meta
+            and (root / "clean").is_dir() and (root / "sparse_gt").is_dir())
+
+
+def find_ground_truth(source: str | Path | None, explicit: str | Path | None = None) -> Path | None:
+    """The ground-truth scene folder of a job: ``explicit`` if given (it must be a generated scene), else the
+    parent of a source folder named ``images`` when that parent is a generated scene, else None."""
+    if explicit:
+        if not is_generated_scene(explicit):
+            raise GroundTruthError(f"ground truth {explicit} is not a generated scene folder (water.json with the "
+                                   f"generator's config, clean/, sparse_gt/)")
+        return Path(explicit)
+    if source:
+        src = Path(source)
+        if src.is_dir() and src.name == "images" and is_generated_scene(src.parent):
+            log.info("ground truth found next to the source: %s", src.parent)
+            return src.parent
+    return None
+
+
+def load_ground_truth(root: str | Path) -> GroundTruth:
+    root = Path(root)
+    if not is_generated_scene(root):
+        raise GroundTruthError(f"{root} is not a generated scene folder")
+    return GroundTruth(root, load_scene(root), json.loads((root / "water.json").read_text()))
+
+
+__all__ = ["GroundTruth", "GroundTruthError", "find_ground_truth", "is_generated_scene", "load_ground_truth"]
