@@ -44,6 +44,29 @@ def medium_from_state(mode: str, sd: dict[str, Any]) -> Medium:
     return m.eval()
 
 
+@dataclass
+class TrainedModel:
+    """What rendering a trained job needs, rebuilt from its checkpoint (see :func:`model_from_state`)."""
+
+    mode: str
+    gaussians: dict[str, torch.Tensor]
+    medium: Medium | None  # None in mode 3dgs
+    sh_degree: int  # the SH degree the model was trained up to (capped at the medium's limit in medium modes)
+    background: tuple[float, float, float]  # what training composited behind the Gaussians
+
+
+def model_from_state(state: dict[str, Any]) -> TrainedModel:
+    """The renderable model in a training checkpoint ``state`` (``pipeline.checkpoint.load_checkpoint``)."""
+    cfg = state["config"]
+    medium = medium_from_state(state["mode"], state["medium"]) if state.get("medium") else None
+    sh = cfg.get("sh_degree", 3)
+    if medium is not None:
+        sh = min(sh, cfg["medium"].get("max_sh_degree", 1))
+    # Medium modes render J premultiplied over black (the water fills what the Gaussians leave uncovered).
+    background = (0.0, 0.0, 0.0) if medium is not None else tuple(cfg.get("background", (0.0, 0.0, 0.0)))
+    return TrainedModel(state["mode"], dict(state["gaussians"]), medium, sh, background)  # type: ignore[arg-type]
+
+
 def render_outputs(gaussians: dict[str, torch.Tensor], view: View, medium: Medium | None, sh_degree: int,
                    backend: str = "auto", background: tuple[float, float, float] | torch.Tensor = (0.0, 0.0, 0.0),
                    ) -> ViewOutputs:
@@ -70,13 +93,10 @@ def export_views(state: dict[str, Any], views: Sequence[View], out: str | Path, 
     from .scene.images import write_image
 
     out = Path(out)
-    gaussians = {k: v for k, v in state["gaussians"].items()}
-    mode = state["mode"]
-    medium = medium_from_state(mode, state["medium"]) if state.get("medium") else None
-    max_sh = state["config"].get("sh_degree", 3)
-    if medium is not None:
-        max_sh = min(max_sh, state["config"]["medium"].get("max_sh_degree", 1))
-    results = [(v, render_outputs(gaussians, v, medium, max_sh, backend)) for v in views]
+    model = model_from_state(state)
+    medium = model.medium
+    results = [(v, render_outputs(model.gaussians, v, medium, model.sh_degree, backend, model.background))
+               for v in views]
     zmax = max(float(r.depth.max()) for _, r in results) or 1.0
     folders = ["restored", "with_water", "depth"] + (["attenuation", "backscatter"] if medium is not None else [])
     for f in folders:

@@ -6,6 +6,7 @@ A hook is ``hook(trainer, metrics)``; it may add keys to ``metrics`` (``eval_hoo
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -47,6 +48,24 @@ def checkpoint_hook(every: int, path: Path) -> Hook:
             tr.save(path)
 
     return hook
+
+
+CURVE_POINTS = 8  # held-out PSNR evaluations over a job's training run (the last one is the final model)
+CURVE_VIEWS = 3  # at most this many held-out views are rendered for each point (cheap; the evaluate stage
+#                  scores every held-out view once, at the end)
+
+
+def curve_every(iterations: int, points: int = CURVE_POINTS) -> int:
+    """The evaluation interval giving about ``points`` speed-vs-error points over ``iterations`` (the hook also
+    evaluates at the last iteration, so the final model is always a point)."""
+    return max(1, math.ceil(iterations / max(1, points)))
+
+
+def curve_subset(n: int, k: int = CURVE_VIEWS) -> list[int]:
+    """Indices of at most ``k`` of ``n`` held-out views, evenly spaced (first one included)."""
+    if n <= k:
+        return list(range(n))
+    return sorted({round(i * (n - 1) / (k - 1)) for i in range(k)}) if k > 1 else [0]
 
 
 def eval_hook(every: int, views: Sequence[View], targets: Sequence[Tensor]) -> Hook:
