@@ -9,7 +9,10 @@ Job folder::
       scene/            sfm: images/ (undistorted) + sparse/0 (PINHOLE) + distorted/
       water.json        classify: water type, probabilities, index w, controller settings
       train/            train: latest.pt checkpoint (resume point), train.json (metrics, speed-vs-error)
-      output/           export: reconstruction.ply, restored/, with_water/, attenuation/, backscatter/, depth/
+      evaluate.json     evaluate: held-out scores, restoration against ground truth, timings, the curve
+      evaluate/         evaluate: renders from the true cameras (jobs with ground truth)
+      output/           export: reconstruction.ply, restored/, with_water/, attenuation/, backscatter/, depth/,
+                        report.json, report.html, speed_vs_error.png
       .stages/<stage>.json   completion markers (config hash + result)
 
 A stage's config hash covers its own options and the hashes of the stages before it, so changing an upstream
@@ -31,7 +34,7 @@ from .stages import config_hash, read_marker, run_marked
 
 log = logging.getLogger(__name__)
 
-STAGES: tuple[str, ...] = ("ingest", "sfm", "classify", "train", "export")
+STAGES: tuple[str, ...] = ("ingest", "sfm", "classify", "train", "evaluate", "export")
 
 
 class JobCancelled(RuntimeError):
@@ -49,6 +52,9 @@ class JobOptions:
     metric_scale: float | None = None  # metres per scene unit, when the user knows it
     iterations: int | None = None  # override the preset's iteration count (tests, quick looks)
     seed: int = 0
+    # A generated scene folder (pipeline.scene.synth) to score against; unset: found next to an ``images``
+    # source folder when that sits in a generated scene (pipeline.ground_truth).
+    ground_truth: str | None = None
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -149,6 +155,9 @@ def train_config(opts: JobOptions, width: int):
     cfg.seed = opts.seed
     cfg.mode = opts.mode  # type: ignore[assignment]
     cfg.downscale = max(1, math.ceil(width / opts.max_width))
+    from .train_hooks import curve_every
+
+    cfg.eval_every = curve_every(cfg.iterations)  # the speed-vs-error curve's fixed schedule
     return cfg
 
 
@@ -165,27 +174,48 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         apply_water_decision(cfg, json.loads((job / "water.json").read_text()))
     train_scene = type(scene)(train_views, scene.points, scene.colors, scene.root)
     images = load_images(train_scene)
-    test_images = load_images(type(scene)(test_views, root=scene.root)) if test_views else []
+    from .train_hooks import curve_subset
+
+    curve_views = [test_views[i] for i in curve_subset(len(test_views))]  # a few views keep the curve cheap
+    test_images = load_images(type(scene)(curve_views, root=scene.root)) if curve_views else []
 
     def progress(it: int, total: int, metrics: dict) -> None:
         ctx.on_progress("train", it / max(1, total), f"iteration {it}/{total}")
 
     try:
-        res = train(train_scene, images, cfg, test_views=test_views, test_images=test_images,
+        res = train(train_scene, images, cfg, test_views=curve_views, test_images=test_images,
                     checkpoint_dir=job / "train", on_progress=progress, should_cancel=ctx.should_cancel,
                     device=ctx.device)
     except TrainingCancelled as e:
         raise JobCancelled(str(e)) from e
     out = {"iterations": res.iteration, "metrics": res.metrics, "history": res.history, "medium": res.medium,
            "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
-           "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale}
+           "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale,
+           "curve_views": [v.name for v in curve_views]}
     atomic_write_json(job / "train" / "train.json", out)
     return out
 
 
+def stage_evaluate(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    """Held-out scores, restoration against ground truth where it exists, timings, the speed-vs-error curve
+    (``pipeline.evaluate``) -> ``job/evaluate.json``."""
+    from .evaluate import evaluate_job
+    from .ground_truth import find_ground_truth
+    from .stages import atomic_write_json
+
+    gt = find_ground_truth(opts.source, opts.ground_truth)
+    res = evaluate_job(job, gt, stages=STAGES[:STAGES.index("evaluate")])
+    atomic_write_json(job / "evaluate.json", res)
+    return res
+
+
 def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     """reconstruction.ply plus restored/, with_water/, attenuation/, backscatter/, depth/ for every input
-    view (training and held-out alike), at the resolution training used."""
+    view (training and held-out alike), at the resolution training used; then report.json and report.html
+    (``pipeline.report``), which read those files."""
+    import time
+
+    t0 = time.perf_counter()
     from .checkpoint import load_checkpoint
     from .restore import export_views
     from .scene.loader import load_scene
@@ -200,17 +230,21 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     views = [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
              for v in load_scene(job / "scene").views]
     counts = export_views(state, views, out)
-    return {"reconstruction.ply": len(data), **counts}
+    from .report import write_report
+
+    reports = write_report(job, out, export_s=time.perf_counter() - t0)
+    return {"reconstruction.ply": len(data), **counts, "report": [p.name for p in reports]}
 
 
 STAGE_FUNCTIONS: dict[str, Callable[[Path, JobOptions, StageContext], dict]] = {
     "ingest": stage_ingest, "sfm": stage_sfm, "classify": stage_classify, "train": stage_train,
-    "export": stage_export,
+    "evaluate": stage_evaluate, "export": stage_export,
 }
 # Which options each stage depends on (beyond the stages before it).
 STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
     "ingest": ("source",), "sfm": ("seed",), "classify": (),
     "train": ("preset", "mode", "max_width", "iterations", "seed"),
+    "evaluate": ("ground_truth",),
     "export": (),
 }
 

@@ -1,0 +1,175 @@
+"""The job's report: ``report.json`` (schema ``pipeline/data/report.schema.json``, documented in docs/REPORT.md)
+and a self-contained ``report.html`` (every picture embedded as a ``data:`` URI), both in ``job/output/``.
+
+Built at the end of the export stage from what the stages wrote: ``job.json`` (options), ``water.json``
+(classify), ``train/train.json`` and ``train/selection.json`` (train; the latter only with ``--mode auto``),
+``evaluate.json`` and ``evaluate/`` (evaluate) and ``output/`` (export's images).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .evaluate import TRUE_CAMERA_DIR, json_safe, scaled_view, stage_timings
+from .stages import atomic_write_json, atomic_write_text
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+SCHEMA_FILE = Path(__file__).resolve().parent / "data" / "report.schema.json"
+CURVE_PNG = "speed_vs_error.png"
+MAX_VIEWS_SHOWN = 6  # held-out views pictured in the HTML (all are scored)
+OUTPUT_FOLDERS = ("restored", "with_water", "attenuation", "backscatter", "depth")
+
+
+def _read_json(path: Path) -> Any:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def selection_of(job: Path, options: dict, mode: str) -> dict[str, Any]:
+    """What mode was chosen and why: ``train/selection.json`` (written by ``--mode auto``) when present, else
+    the mode the user asked for."""
+    sel = _read_json(job / "train" / "selection.json")
+    if isinstance(sel, dict) and "mode" in sel:
+        return {"reason": "chosen automatically", **sel}
+    return {"mode": mode, "requested": options.get("mode", mode), "reason": "requested by the user"}
+
+
+def build_report(job: str | Path, export_s: float | None = None) -> dict[str, Any]:
+    """The report.json content of a job whose evaluate stage has run (``export_s``: the export stage's seconds
+    so far, as its marker is not written yet)."""
+    from .job import STAGES
+
+    job = Path(job)
+    ev = _read_json(job / "evaluate.json")
+    if ev is None:
+        raise FileNotFoundError(f"{job / 'evaluate.json'} is missing: run the evaluate stage first")
+    options = _read_json(job / "job.json") or {}
+    stages = stage_timings(job, [s for s in STAGES if s != "export"])
+    stages["export"] = export_s
+    timings = {k: v for k, v in ev["timings"].items() if k != "stages_s"}
+    timings.update(stages_s=stages, total_s=sum(v for v in stages.values() if v is not None))
+    restoration = ev.get("restoration")
+    scale = restoration["metres_per_unit"] if restoration else options.get("metric_scale")
+    model = {**ev["model"], "metres_per_unit": scale}
+    medium = model.get("medium")
+    if medium and scale:
+        model["medium_per_metre"] = {"beta_D": [b / scale for b in medium["beta_D"]],
+                                     "beta_B": [b / scale for b in medium["beta_B"]], "B_inf": medium["B_inf"],
+                                     "units": "1/m (B_inf: linear intensity)"}
+    out = job / "output"
+    report = {
+        "schema_version": SCHEMA_VERSION,
+        "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
+        "job": {"name": job.resolve().name, "options": options},
+        "water": _read_json(job / "water.json"),
+        "mode": ev["mode"],
+        "preset": options.get("preset", ""),
+        "selection": selection_of(job, options, ev["mode"]),
+        "metrics": ev["metrics"],
+        "restoration": restoration,
+        "timings": timings,
+        "speed_vs_error": {**ev["speed_vs_error"], "plot": CURVE_PNG if ev["speed_vs_error"]["points"] else None},
+        "model": model,
+        "config": ev.get("config", {}),
+        "outputs": {f: sum(1 for p in (out / f).glob("*.png")) for f in OUTPUT_FOLDERS if (out / f).is_dir()},
+    }
+    return json_safe(report)
+
+
+def validate_report(report: dict) -> None:
+    """Raise ``jsonschema.ValidationError`` when ``report`` does not follow the schema (jsonschema is a dev
+    dependency: the pipeline itself never needs it)."""
+    import jsonschema
+
+    jsonschema.validate(report, json.loads(SCHEMA_FILE.read_text()))
+
+
+@dataclass
+class Pictures:
+    """The HTML's embedded pictures as PNG bytes."""
+
+    views: list[tuple[str, list[tuple[str, bytes]]]]  # per held-out view: (name, [(label, png)])
+    maps: list[tuple[str, list[tuple[str, bytes]]]]  # per held-out view: A, B, depth
+    curve: bytes | None
+
+
+def collect_pictures(job: Path, report: dict) -> Pictures:
+    """Side-by-side with-water / restored / ground truth per held-out view and its A / B / depth maps."""
+    from .ground_truth import load_ground_truth
+    from .plots import image_png, speed_vs_error_png
+    from .scene.images import read_image
+    from .scene.loader import load_scene, load_view_image
+    from .scene.split import split_views
+
+    out = job / "output"
+    names = report["metrics"]["test"]["views"][:MAX_VIEWS_SHOWN]
+    down = int(report["model"].get("downscale", 1))
+    rest = report["restoration"]
+    views = []
+    if rest is not None:  # the true cameras: photo, model, restored and truth share one geometry
+        gt = load_ground_truth(rest["ground_truth"])
+        true_views = {v.name: scaled_view(v, down) for v in gt.scene.views}
+        for n in (n for n in names if n in rest["views"]):
+            v, stem = true_views[n], Path(n).stem
+            photo = load_view_image(type(v)(v.name, v.camera, v.R, v.t, gt.root / "images" / n))
+            cells = [("photo", image_png(photo)),
+                     ("model, with water", (job / TRUE_CAMERA_DIR / "with_water" / f"{stem}.png").read_bytes()),
+                     ("restored J", (job / TRUE_CAMERA_DIR / "restored" / f"{stem}.png").read_bytes()),
+                     ("ground truth J", image_png(gt.clean(v)))]
+            views.append((n, cells))
+    else:
+        _, test = split_views(load_scene(job / "scene").views)
+        by_name = {v.name: scaled_view(v, down) for v in test}
+        for n in (n for n in names if n in by_name):
+            stem = Path(n).stem
+            views.append((n, [("photo", image_png(load_view_image(by_name[n]))),
+                              ("model, with water", (out / "with_water" / f"{stem}.png").read_bytes()),
+                              ("restored J", (out / "restored" / f"{stem}.png").read_bytes())]))
+    maps = []
+    depths = {n: np.load(out / "depth" / f"{Path(n).stem}.npy") for n in names
+              if (out / "depth" / f"{Path(n).stem}.npy").is_file()}
+    zmax = max((float(d.max()) for d in depths.values()), default=1.0) or 1.0
+    for n in names:
+        stem, cells = Path(n).stem, []
+        for folder, label in (("attenuation", "attenuation A"), ("backscatter", "backscatter B")):
+            if (out / folder / f"{stem}.png").is_file():
+                cells.append((label, image_png(read_image(out / folder / f"{stem}.png"))))
+        if n in depths:
+            cells.append((f"depth (0-{zmax:.3g} scene units)", image_png(depths[n], "viridis", 0.0, zmax)))
+        if cells:
+            maps.append((n, cells))
+    points = report["speed_vs_error"]["points"]
+    curve = speed_vs_error_png(points) if points else None
+    return Pictures(views, maps, curve)
+
+
+def write_report(job: str | Path, out: str | Path | None = None, export_s: float | None = None) -> list[Path]:
+    """Write report.json, report.html and the curve's PNG into ``out`` (default ``job/output``); returns the
+    paths written."""
+    from .report_html import render_html
+
+    t0 = time.perf_counter()
+    job = Path(job)
+    out = Path(out) if out is not None else job / "output"
+    out.mkdir(parents=True, exist_ok=True)
+    report = build_report(job, export_s)
+    pictures = collect_pictures(job, report)
+    written = [atomic_write_json(out / "report.json", report)]
+    if pictures.curve is not None:
+        (out / CURVE_PNG).write_bytes(pictures.curve)
+        written.append(out / CURVE_PNG)
+    written.append(atomic_write_text(out / "report.html", render_html(report, pictures)))
+    log.info("report written to %s (%.1f s)", out / "report.html", time.perf_counter() - t0)
+    return written
+
+
+__all__ = ["SCHEMA_FILE", "SCHEMA_VERSION", "build_report", "selection_of", "validate_report", "write_report"]

@@ -1,0 +1,154 @@
+"""report.html: one self-contained page (inline CSS, pictures as ``data:`` URIs, no script, no network) that
+a scientist reads top to bottom: headline numbers, how the mode was chosen, held-out scores, restoration
+against ground truth, the pictures, the speed-vs-error curve, the water decision, timings and the config.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from html import escape
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .report import Pictures
+
+_CSS = """
+body{font:14px/1.45 system-ui,sans-serif;margin:24px auto;max-width:1150px;color:#1b2730;background:#fff}
+h1{font-size:22px;margin:0 0 4px}h2{font-size:17px;margin:28px 0 8px;border-bottom:1px solid #cfd8dc}
+table{border-collapse:collapse;margin:6px 0}td,th{border:1px solid #cfd8dc;padding:3px 8px;text-align:right}
+th{background:#eef3f5}td.l,th.l{text-align:left}.muted{color:#5f7480}
+.head{display:flex;flex-wrap:wrap;gap:10px;margin:12px 0}
+.kpi{border:1px solid #cfd8dc;border-radius:6px;padding:8px 12px;min-width:130px}
+.kpi b{display:block;font-size:19px}
+.row{display:flex;gap:8px;margin:6px 0 14px;flex-wrap:wrap}
+figure{margin:0;flex:1 1 0;min-width:150px;max-width:300px}
+figure img{width:100%;image-rendering:pixelated;display:block}
+figcaption{font-size:12px;color:#5f7480}pre{background:#f5f8f9;padding:10px;overflow:auto;font-size:12px}
+"""
+
+
+def data_uri(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+
+
+def fmt(x: Any, digits: int = 2) -> str:
+    if x is None:
+        return "—"
+    if isinstance(x, float):
+        return f"{x:.{digits}f}"
+    return escape(str(x))
+
+
+def table(header: list[str], rows: list[list[Any]], digits: int = 2) -> str:
+    head = "".join(f'<th class="{"l" if i == 0 else ""}">{escape(h)}</th>' for i, h in enumerate(header))
+    body = "".join("<tr>" + "".join(f'<td class="{"l" if i == 0 else ""}">{fmt(c, digits)}</td>'
+                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _figures(cells: list[tuple[str, bytes]]) -> str:
+    return '<div class="row">' + "".join(
+        f'<figure><img src="{data_uri(png)}" alt="{escape(label)}"><figcaption>{escape(label)}</figcaption></figure>'
+        for label, png in cells) + "</div>"
+
+
+def _kpis(r: dict) -> str:
+    t, rest = r["metrics"]["test"], r["restoration"]
+    water = r["water"]["water_type"] if r["water"] else None
+    items = [("mode", r["mode"]), ("preset", r["preset"]), ("water", water),
+             ("held-out PSNR", f"{fmt(t['psnr'])} dB"), ("held-out SSIM", fmt(t["ssim"], 3)),
+             ("LPIPS", fmt(t["lpips"], 3))]
+    if rest is not None:
+        items.append(("restored J PSNR vs truth", f"{fmt(rest['restored']['psnr'])} dB"))
+    items += [("Gaussians", r["model"]["n_gaussians"]), ("total time", f"{fmt(r['timings']['total_s'], 0)} s")]
+    return '<div class="head">' + "".join(f'<div class="kpi"><span class="muted">{escape(k)}</span>'
+                                          f"<b>{fmt(v) if not isinstance(v, str) else escape(v)}</b></div>"
+                                          for k, v in items) + "</div>"
+
+
+def _restoration(rest: dict | None) -> str:
+    if rest is None:
+        return "<h2>Restoration</h2><p class=muted>No ground truth for this job (only generated scenes have it).</p>"
+    rows = [[label, rest[k]["psnr"], rest[k]["ssim"], rest[k]["lpips"]] for label, k in (
+        ("restored J vs true clean J", "restored"), ("photo vs true clean J (no restoration)", "input"),
+        ("model with water vs photo (alignment check)", "with_water"))]
+    html = ("<h2>Restoration against ground truth</h2>"
+            f"<p class=muted>{escape(rest['rendered_from'])}; {len(rest['views'])} held-out views; ground truth "
+            f"{escape(rest['ground_truth'])} (water preset {fmt(rest.get('water_preset'))}); one scene unit = "
+            f"{fmt(rest['metres_per_unit'], 4)} m by aligning the cameras to the true ones (rotation error "
+            f"{fmt(rest['alignment']['rot_err_deg_mean'], 3)}°).</p>"
+            + table(["comparison", "PSNR (dB)", "SSIM", "LPIPS"], rows, 3))
+    coef = rest["coefficients"]
+    if coef is not None:
+        crow = []
+        for k in ("beta_D", "beta_B", "B_inf"):
+            c = coef[k]
+            crow += [[f"{k} {ch} ({coef['units'][k]})", c["estimated"][i], c["true"][i], c["rel_error"][i]]
+                     for i, ch in enumerate("RGB")]
+        html += table(["coefficient", "recovered", "true", "relative error"], crow, 3)
+    else:
+        html += "<p class=muted>No medium in this mode: no water coefficients recovered.</p>"
+    d = rest["depth"]
+    html += table(["depth error (held-out views)", "mean abs", "mean relative", "pixels"], [
+        [f"least-squares scale ({fmt(d['scale_aligned']['scale'], 4)} m/unit)", d["scale_aligned"]["abs_error"],
+         d["scale_aligned"]["rel_error"], d["scale_aligned"]["n_pixels"]],
+        ["at the camera alignment's scale", d["at_alignment_scale"]["abs_error_m"],
+         d["at_alignment_scale"]["rel_error"], d["at_alignment_scale"]["n_pixels"]]], 3)
+    return html
+
+
+def _water(w: dict | None) -> str:
+    if not w:
+        return "<h2>Water type</h2><p class=muted>Not classified.</p>"
+    probs = ", ".join(f"{escape(k)} {v:.2f}" for k, v in w.get("probabilities", {}).items())
+    rest = [[k, json.dumps(v)] for k, v in w.items() if k not in ("water_type", "probabilities")]
+    return (f"<h2>Water type</h2><p>Classified <b>{escape(w['water_type'])}</b> (probabilities {probs}).</p>"
+            + table(["decision field", "value"], rest))
+
+
+def _timings(t: dict) -> str:
+    rows = [[f"stage {k}", v] for k, v in t["stages_s"].items()] + [["total", t["total_s"]]]
+    r = t["render_ms_per_view"]
+    rows += [["training iterations / s", t["train_iterations_per_s"]],
+             ["training seconds (steps only)", t.get("train_elapsed_s")],
+             [f"render ms per view ({r.get('width')}x{r.get('height')}, median of {r['n']})", r["median"]]]
+    return "<h2>Timings</h2>" + table(["what", "seconds / rate"], rows, 2)
+
+
+def render_html(r: dict, pics: Pictures) -> str:
+    """The page for report ``r`` with ``pics`` embedded."""
+    t = r["metrics"]["test"]
+    sel = r["selection"]
+    parts = [f"<h1>dualphys report: {escape(r['job']['name'])}</h1>",
+             f"<p class=muted>created {escape(r['created_at'])}; report schema {r['schema_version']}</p>",
+             _kpis(r),
+             f"<h2>Model selection</h2><p>Mode <b>{escape(sel['mode'])}</b>: {escape(sel['reason'])}.</p>",
+             "<h2>Held-out views</h2>"
+             f"<p class=muted>{t['n_views']} views (every 8th by name), {escape(t['compared'])}; PSNR of the pooled "
+             f"MSE, SSIM with an 11x11 Gaussian window. LPIPS: {escape(t['lpips_reason'] or 'LPIPS-VGG')}.</p>",
+             table(["view", "PSNR (dB)", "SSIM", "render ms"],
+                   [[p["name"], p["psnr"], p["ssim"], p["render_ms"]] for p in t["per_view"]], 3),
+             _restoration(r["restoration"]),
+             "<h2>Held-out views: photo, model, restored" + (", ground truth" if r["restoration"] else "") + "</h2>"]
+    parts += [f"<p class=muted>{escape(name)}</p>" + _figures(cells) for name, cells in pics.views]
+    parts.append("<h2>Water maps: attenuation, backscatter, depth</h2>")
+    parts += [f"<p class=muted>{escape(name)}</p>" + _figures(cells) for name, cells in pics.maps] or [
+        "<p class=muted>No maps.</p>"]
+    sve = r["speed_vs_error"]
+    parts.append("<h2>Speed against error</h2>")
+    if pics.curve is not None:
+        parts.append(f'<img src="{data_uri(pics.curve)}" alt="speed against error" style="max-width:640px">')
+    parts.append(f"<p class=muted>{escape(sve['metric'])} on {len(sve['views'])} held-out views against "
+                 f"{escape(sve.get('time', 'training seconds'))}.</p>"
+                 + table(["iteration", "seconds", "PSNR (dB)"],
+                         [[p["iteration"], p["elapsed_s"], p["psnr"]] for p in sve["points"]]))
+    parts += [_water(r["water"]), _timings(r["timings"]),
+              "<h2>Config</h2><pre>" + escape(json.dumps({"job options": r["job"]["options"],
+                                                          "training": r["config"]}, indent=2)) + "</pre>"]
+    return ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>dualphys report "
+            f"{escape(r['job']['name'])}</title><style>{_CSS}</style></head><body>" + "\n".join(parts)
+            + "</body></html>\n")
+
+
+__all__ = ["data_uri", "render_html"]
