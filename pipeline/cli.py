@@ -61,6 +61,10 @@ def cmd_sfm(args: argparse.Namespace) -> int:
     return 0
 
 
+def _db(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.2f} dB"
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Generate a scene with known water and run the job on it end to end."""
     from .config import SynthConfig
@@ -94,7 +98,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"cameras within {errs['rot_err_deg_mean']:.2f} deg / {100 * errs['center_err_rel_mean']:.2f} % of "
           f"the path of the truth); water classified '{water['water_type']}' "
           f"(p={water['probabilities'][water['water_type']]:.2f}); held-out PSNR with water "
-          f"{train['metrics'].get('test_psnr', float('nan')):.2f} dB; {train['n_gaussians']} Gaussians")
+          f"{_db(res['evaluate']['metrics']['test']['psnr'])}; {train['n_gaussians']} Gaussians")
+    rest = res["evaluate"].get("restoration")
+    if rest:
+        print(f"      restored J against the true clean images (held-out views): PSNR {_db(rest['restored']['psnr'])}, "
+              f"SSIM {rest['restored']['ssim']:.3f} (the photos themselves: {_db(rest['input']['psnr'])})")
     if coef:
         # SfM scenes have no metric scale: one scene unit is errs['scale'] metres (similarity to the truth).
         metric = [b / errs["scale"] for b in coef["beta_D"]]
@@ -102,11 +110,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
               + ", ".join(f"{c} {m:.3f} (true {t:.3f})" for c, m, t in zip("RGB", metric, truth.beta_D)))
     print(f"      outputs: {out / 'job' / 'output'} (reconstruction.ply, restored/, with_water/, attenuation/, "
           f"backscatter/, depth/)")
-    print("Not yet built: the evaluate stage (restored-J scores against the truth) and the HTML report.")
+    print(f"      report: {(out / 'job' / 'output' / 'report.html').resolve()}")
     summary = {"scene": str(scene_dir), "job": str(out / "job"), "alignment": errs, "results": res,
                "seconds": round(time.perf_counter() - t0, 1)}
     (out / "demo.json").write_text(json.dumps(summary, indent=2, default=str))
-    print(json.dumps({"demo": str(out / "demo.json"), "ply": str(out / "job" / "output" / "reconstruction.ply")}))
+    print(json.dumps({"demo": str(out / "demo.json"), "ply": str(out / "job" / "output" / "reconstruction.ply"),
+                      "report": str(out / "job" / "output" / "report.html")}))
     return 0
 
 
