@@ -35,11 +35,12 @@ def _read_json(path: Path) -> Any:
 
 
 def selection_of(job: Path, options: dict, mode: str) -> dict[str, Any]:
-    """What mode was chosen and why: ``train/selection.json`` (written by ``--mode auto``) when present, else
-    the mode the user asked for."""
+    """What mode was chosen and why: ``train/selection.json`` (written by ``--mode auto``: ``requested``,
+    ``chosen``, ``reason``, the probe's numbers) when present, with ``mode`` = the chosen mode; else the mode
+    the user asked for."""
     sel = _read_json(job / "train" / "selection.json")
-    if isinstance(sel, dict) and "mode" in sel:
-        return {"reason": "chosen automatically", **sel}
+    if isinstance(sel, dict) and ("chosen" in sel or "mode" in sel):
+        return {"reason": "chosen automatically", **sel, "mode": sel.get("chosen", sel.get("mode"))}
     return {"mode": mode, "requested": options.get("mode", mode), "reason": "requested by the user"}
 
 

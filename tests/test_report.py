@@ -109,8 +109,11 @@ def test_report_without_ground_truth_has_null_restoration(job, tmp_path):
     validate_report(r)
     assert r["restoration"] is None and r["model"]["metres_per_unit"] is None
     assert "No ground truth" in (copy / "output" / "report.html").read_text()
-    (copy / "train" / "selection.json").write_text(json.dumps({"mode": "3dgs", "reason": "probe: no water found"}))
-    assert build_report(copy)["selection"]["reason"] == "probe: no water found"
+    sel = {"requested": "auto", "chosen": "3dgs", "reason": "probe: no water found", "probe": {"3dgs": {"psnr": 30}}}
+    (copy / "train" / "selection.json").write_text(json.dumps(sel))
+    r = build_report(copy)
+    validate_report(r)
+    assert r["selection"] == {**sel, "mode": "3dgs"}
 
 
 def _png_shape(data: bytes) -> tuple[int, ...]:
