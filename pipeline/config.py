@@ -130,6 +130,9 @@ class MediumConfig:
     losses: tuple[str, ...] = ("ab", "wat", "edge", "ms", "floater")  # enabled terms beyond L_basic (ablation)
     loss_weights: dict[str, float] = field(default_factory=dict)  # overrides of pipeline.losses.LossWeights
     max_sh_degree: int = 1  # low-order SH keeps J view-consistent, so range-dependent colour goes to the water
+    colour_prior: Literal["tracks", "grey_world"] = "tracks"  # L_attenuation: anchor β_D to the multi-view
+    #   estimate from the sparse points (pipeline.medium.estimate), or the grey-world prior on J
+    #   ("tracks" falls back to grey-world when the points cannot measure the water)
 
     def __post_init__(self) -> None:
         # JSON round trips turn tuples into lists.

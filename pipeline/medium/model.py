@@ -32,6 +32,7 @@ class MediumOutput:
     A: Tensor  # direct transmission (attenuation map), 3 channels, in (0, 1]
     B: Tensor  # backscatter at the surface depth, 3 channels
     B_frac: Tensor  # backscatter fraction B / B∞ ∈ [0, 1), 3 channels (the paper's B_s)
+    beta_eff: Tensor  # [3] the image's mean effective attenuation coefficient (w·β·(1 − γE)·T), 1/scene-unit
 
 
 def _inv_softplus(y: float) -> float:
@@ -52,13 +53,15 @@ class Medium(nn.Module):
         gamma, lam, delta: modulation strengths of eqs. 5 and 8.
         depth_scale: the scene's depth normaliser (e.g. median SfM depth), fixed once per scene; only the
             networks' inputs are divided by it, the physics uses D in scene units.
-        init_beta / init_binf: starting coefficients (per channel), e.g. from the classifier's water type.
+        init_beta / init_binf / init_beta_b: starting coefficients (per channel), from the sparse-point estimate
+            or the classifier's water type; β_B starts at β_D unless given.
     """
 
     def __init__(self, mode: str = "dualphys", *, rgb_attenuation: bool = True, multiscale_scattering: bool = True,
                  gamma: float = 0.3, lam: float = 0.3, delta: float = 0.5, depth_scale: float = 1.0,
                  init_beta: tuple[float, float, float] = (0.3, 0.15, 0.1),
-                 init_binf: tuple[float, float, float] = (0.1, 0.3, 0.4)):
+                 init_binf: tuple[float, float, float] = (0.1, 0.3, 0.4),
+                 init_beta_b: tuple[float, float, float] | None = None):
         super().__init__()
         if mode not in ("homogeneous", "dualphys"):
             raise ValueError(f"Medium mode must be 'homogeneous' or 'dualphys', got {mode!r}")
@@ -69,7 +72,7 @@ class Medium(nn.Module):
         self.register_buffer("depth_scale", torch.tensor(float(depth_scale)))
         self.register_buffer("water_factor", torch.tensor(1.0))  # T of eq. 5, set by the controller
         self.beta_d_raw = nn.Parameter(torch.tensor([_inv_softplus(b) for b in init_beta]))
-        self.beta_b_raw = nn.Parameter(torch.tensor([_inv_softplus(b) for b in init_beta]))
+        self.beta_b_raw = nn.Parameter(torch.tensor([_inv_softplus(b) for b in (init_beta_b or init_beta)]))
         self.binf_raw = nn.Parameter(torch.tensor([_logit(b) for b in init_binf]))
         self.w = nn.Parameter(torch.ones(3))  # eq. 5's wavelength weights (fixed at 1 when homogeneous)
         self.w.requires_grad_(mode == "dualphys")
@@ -88,12 +91,14 @@ class Medium(nn.Module):
     def B_inf(self) -> Tensor:  # [3] in (0, 1)
         return torch.sigmoid(self.binf_raw)
 
-    def attenuation(self, J: Tensor, D: Tensor) -> Tensor:
-        """A [N,3,H,W]: eq. 5 when RGB-guided, else the homogeneous transmission exp(−β_D·D)."""
+    def attenuation(self, J: Tensor, D: Tensor) -> tuple[Tensor, Tensor]:
+        """(A [N,3,H,W], mean effective coefficient [3]): eq. 5 when RGB-guided, else exp(−β_D·D)."""
+        coef = self.w * self.beta_D
         if self.edge is None:
-            return transmission(self.w * self.beta_D, D)
+            return transmission(coef, D), coef
         E = self.edge(J, D / self.depth_scale)
-        return rgb_guided_attenuation(D, self.w, self.beta_D, E, self.gamma, self.water_factor)
+        A = rgb_guided_attenuation(D, self.w, self.beta_D, E, self.gamma, self.water_factor)
+        return A, coef * (1.0 - self.gamma * E.clamp(0, 1).mean()) * self.water_factor
 
     def backscatter(self, D: Tensor) -> Tensor:
         """B [N,3,H,W]: eq. 8 when multi-scale, else eq. 6."""
@@ -107,10 +112,10 @@ class Medium(nn.Module):
         """J [N,3,H,W] rendered (premultiplied) radiance; D [N,1,H,W] distance along the ray; alpha [N,1,H,W]."""
         if J.ndim != 4 or J.shape[1] != 3 or D.shape != (J.shape[0], 1, *J.shape[2:]):
             raise ValueError(f"expected J [N,3,H,W] and D [N,1,H,W], got {tuple(J.shape)} and {tuple(D.shape)}")
-        A = self.attenuation(J, D)
+        A, beta_eff = self.attenuation(J, D)
         B = self.backscatter(D)
         binf = self.B_inf
         if alpha is None:
             alpha = torch.ones_like(D)
         I = composite_over_water(J, A, B, alpha, binf)  # noqa: E741
-        return MediumOutput(I=I, A=A, B=B, B_frac=B / binf.reshape(1, -1, 1, 1))
+        return MediumOutput(I=I, A=A, B=B, B_frac=B / binf.reshape(1, -1, 1, 1), beta_eff=beta_eff)

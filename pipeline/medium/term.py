@@ -20,6 +20,7 @@ from torch import Tensor
 from ..config import MediumConfig
 from ..losses import LossWeights, basic_loss, loss_terms
 from ..scene.types import Scene, View, ray_length_factor
+from .estimate import fit_medium, gather_observations
 from .model import Medium, MediumOutput
 
 log = logging.getLogger(__name__)
@@ -57,12 +58,17 @@ class MediumTerm:
         self.depth_scale = scene_depth_scale(scene, views)
         tau = np.asarray(cfg.init_optical_depth)  # β·(typical depth): scale-free starting attenuation
         binf = torch.stack([t.reshape(-1, 3).median(dim=0).values for t in targets]).median(dim=0).values
-        binf = binf.clamp(0.02, 0.95)
+        init = {"init_beta": tuple(float(x) for x in tau / self.depth_scale),
+                "init_binf": tuple(float(x) for x in binf.clamp(0.02, 0.95).tolist())}
+        self.estimate: dict[str, Any] | None = None
+        if cfg.colour_prior == "tracks" and len(scene.points):
+            est = fit_medium(gather_observations(scene.points, views, targets), cfg.init_optical_depth)
+            if est is not None:
+                self.estimate = est.to_dict()
+                init = {"init_beta": est.beta_D, "init_beta_b": est.beta_B, "init_binf": est.B_inf}
         self.medium = Medium(
             mode, rgb_attenuation=cfg.rgb_attenuation, multiscale_scattering=cfg.multiscale_scattering,
-            gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=self.depth_scale,
-            init_beta=tuple(float(x) for x in tau / self.depth_scale),
-            init_binf=tuple(float(x) for x in binf.tolist()),
+            gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=self.depth_scale, **init,  # type: ignore[arg-type]
         ).to(device)
         self.medium.water_factor.fill_(cfg.water_factor)
         self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
@@ -94,8 +100,24 @@ class MediumTerm:
         out, D = self.apply(view_index, J, alpha, depth)
         enabled = frozenset(self.cfg.losses)
         _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha),
-                                 self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled)
+                                 self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled,
+                                 anchor=self._anchor(out, D, _nchw(alpha)))
         return weighted
+
+    def _anchor(self, out: MediumOutput, D: Tensor, alpha: Tensor) -> dict[str, tuple[Tensor, Tensor]] | None:
+        """The water the sparse points measured, as (model, measurement) pairs: the view's mean effective β_D
+        (including eq. 5's edge modulation, so the network can move attenuation around but not remove it) and
+        its alpha-weighted mean backscatter against the measured curve at the rendered ranges."""
+        if self.estimate is None:
+            return None
+
+        def t(key: str) -> Tensor:
+            return torch.as_tensor(self.estimate[key], dtype=D.dtype, device=D.device).reshape(1, 3, 1, 1)  # type: ignore[index]
+
+        b_ref = t("B_inf") * (1 - torch.exp(-t("beta_B") * D))
+        dims = (0, 2, 3)
+        return {"attenuation": (out.beta_eff, t("beta_D").flatten()),
+                "backscatter": ((alpha * out.B).mean(dims), (alpha * b_ref).mean(dims).detach())}
 
     @staticmethod
     def warmup_loss(image: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
@@ -116,9 +138,10 @@ class MediumTerm:
 
     def state_dict(self) -> dict[str, Any]:
         return {"mode": self.mode, "config": asdict(self.cfg), "module": self.medium.state_dict(),
-                "optimizer": self.optimizer.state_dict(), "depth_scale": self.depth_scale}
+                "optimizer": self.optimizer.state_dict(), "depth_scale": self.depth_scale, "estimate": self.estimate}
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.medium.load_state_dict(sd["module"])
         self.optimizer.load_state_dict(sd["optimizer"])
         self.depth_scale = float(sd["depth_scale"])
+        self.estimate = sd.get("estimate")

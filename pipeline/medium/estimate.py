@@ -1,0 +1,165 @@
+"""The water's global coefficients measured from the sparse model before training.
+
+A surface point seen from several ranges r changes colour only because of the water: its observed colour is
+``I_c(r) = J_c·exp(−β_D,c·r) + B∞_c·(1 − exp(−β_B,c·r))`` (eq. 3 with eq. 6) with one unknown J per point and
+per channel, while β_D, β_B, B∞ are shared by every point. Fitting all observations of all points jointly by
+robust least squares measures the water without assuming anything about the scene's colours (unlike a
+grey-world prior, which makes a sandy seabed grey). The same idea underlies Sea-thru's range-dependent
+estimates (Akkaynak & Treibitz 2019); here the multi-view tracks of the sparse model replace its depth map.
+
+The medium starts training at these coefficients, and ``L_attenuation`` keeps the effective global β_D near
+them (``pipeline.losses.attenuation_anchor``): the medium networks still learn the spatial modulation of
+eqs. 5 and 8 around them. Ranges are distances along the ray in scene units, so the coefficients are in
+1/scene-unit, like the medium's.
+
+Visibility without a depth map: a point is taken as seen in a view when it projects inside the image and is
+the nearest (within ``depth_tolerance``) of all points falling in its grid cell, a z-buffer of the sparse
+points themselves.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from ..scene.types import View
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Observations:
+    """Every (point, view) sighting: point index, range along the ray (scene units), observed RGB in [0, 1]."""
+
+    point: np.ndarray  # [M] int
+    range: np.ndarray  # [M] float
+    colour: np.ndarray  # [M, 3] float
+
+
+@dataclass
+class MediumEstimate:
+    beta_D: tuple[float, float, float]  # 1/scene-unit
+    beta_B: tuple[float, float, float]  # 1/scene-unit
+    B_inf: tuple[float, float, float]
+    n_points: int  # points with at least two sightings (the ones that carry range information)
+    n_observations: int
+    residual: float  # RMS colour residual of the fit
+    range_ratio: float  # 90th / 10th percentile of the ranges used: how much range variation there was
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def gather_observations(points: np.ndarray, views: Sequence[View], images: Sequence[np.ndarray | torch.Tensor],
+                        cell_px: int = 4, depth_tolerance: float = 0.03) -> Observations:
+    """Project the sparse points into every view and read their colours (3x3 mean) where they are visible.
+
+    ``images[i]`` is [H, W, 3] at the resolution of ``views[i].camera``.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    idx_all, rng_all, col_all = [], [], []
+    for v, img in zip(views, images, strict=True):
+        im = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
+        H, W = im.shape[:2]
+        cam = (pts @ v.R.T) + v.t
+        z = cam[:, 2]
+        ok = z > 1e-6
+        zs = np.where(ok, z, 1.0)
+        u = v.camera.fx * cam[:, 0] / zs + v.camera.cx
+        w = v.camera.fy * cam[:, 1] / zs + v.camera.cy
+        ok &= (u >= 1) & (u <= W - 2) & (w >= 1) & (w <= H - 2)
+        ids = np.nonzero(ok)[0]
+        if ids.size == 0:
+            continue
+        cx = (u[ids] // cell_px).astype(np.int64)
+        cy = (w[ids] // cell_px).astype(np.int64)
+        cell = cy * (W // cell_px + 1) + cx
+        zmin = np.full(int(cell.max()) + 1, np.inf)
+        np.minimum.at(zmin, cell, z[ids])
+        vis = ids[z[ids] <= zmin[cell] * (1 + depth_tolerance)]
+        px = np.round(u[vis]).astype(np.int64)
+        py = np.round(w[vis]).astype(np.int64)
+        patch = np.stack([im[py + dy, px + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)]).mean(0)
+        idx_all.append(vis)
+        rng_all.append(np.linalg.norm(pts[vis] - v.center, axis=1))
+        col_all.append(patch.astype(np.float64))
+    if not idx_all:
+        return Observations(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
+    return Observations(np.concatenate(idx_all), np.concatenate(rng_all), np.concatenate(col_all))
+
+
+def _channel_loss(theta: torch.Tensor, inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Tensor,  # noqa: E741
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares misfit of one channel for θ = (log β_D, log β_B, logit B∞), with every point's J
+    eliminated in closed form (J_p = Σ a·(I − b) / Σ a², clamped to [0, 1]): variable projection.
+    Returns (mean squared residual, J per point)."""
+    a = torch.exp(-torch.exp(theta[0]) * r)
+    b = torch.sigmoid(theta[2]) * (1 - torch.exp(-torch.exp(theta[1]) * r))
+    num = torch.zeros(n_points, dtype=r.dtype).index_add(0, inv, a * (I - b))
+    den = torch.zeros(n_points, dtype=r.dtype).index_add(0, inv, a * a)
+    J = (num / den.clamp(min=1e-12)).clamp(0, 1)
+    return ((J[inv] * a + b - I) ** 2).mean(), J
+
+
+def _fit_channel(inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Tensor,  # noqa: E741
+                 starts: Sequence[tuple[float, float, float]]) -> tuple[torch.Tensor, float]:
+    best: tuple[torch.Tensor, float] | None = None
+    for s in starts:
+        theta = torch.tensor([np.log(s[0]), np.log(s[1]), float(np.log(s[2] / (1 - s[2])))], dtype=torch.float64,
+                             requires_grad=True)
+        opt = torch.optim.LBFGS([theta], lr=1, max_iter=200, tolerance_grad=1e-12, tolerance_change=1e-15,
+                                line_search_fn="strong_wolfe")
+
+        def closure(theta: torch.Tensor = theta, opt: torch.optim.LBFGS = opt) -> torch.Tensor:
+            opt.zero_grad()
+            loss = _channel_loss(theta, inv, n_points, r, I)[0]
+            loss.backward()
+            return loss
+
+        opt.step(closure)  # type: ignore[arg-type]
+        with torch.no_grad():
+            theta.clamp_(min=torch.tensor([-12.0, -12.0, -8.0], dtype=torch.float64),
+                         max=torch.tensor([4.0, 4.0, 3.0], dtype=torch.float64))
+            loss = float(_channel_loss(theta, inv, n_points, r, I)[0])
+        if best is None or loss < best[1]:
+            best = (theta.detach().clone(), loss)
+    assert best is not None
+    return best
+
+
+def fit_medium(obs: Observations, init_optical_depth: Sequence[float] = (0.8, 0.3, 0.25),
+               min_points: int = 50) -> MediumEstimate | None:
+    """Least-squares fit, per channel, of β_D, β_B, B∞ (shared) and J (per point, eliminated in closed form)
+    to the sightings, from a few starting points; None when the sightings cannot say anything about range
+    (fewer than ``min_points`` points seen twice)."""
+    counts = np.bincount(obs.point) if obs.point.size else np.zeros(0, np.int64)
+    if int((counts >= 2).sum()) < min_points:
+        log.info("medium estimate: only %d points seen twice; skipped", int((counts >= 2).sum()))
+        return None
+    keep = counts[obs.point] >= 2
+    pid, inv = np.unique(obs.point[keep], return_inverse=True)
+    inv_t = torch.as_tensor(inv)
+    r = torch.as_tensor(obs.range[keep], dtype=torch.float64)
+    colour = torch.as_tensor(obs.colour[keep], dtype=torch.float64)
+    r_med = float(r.median())
+    coef, sq = [], []
+    for c in range(3):
+        tau = max(float(init_optical_depth[c]), 1e-3)
+        binf0 = float(colour[:, c].quantile(0.05).clamp(0.02, 0.9))
+        starts = [(k * tau / r_med, k * tau / r_med, binf0) for k in (0.5, 1.0, 2.0)]
+        theta, loss = _fit_channel(inv_t, len(pid), r, colour[:, c], starts)
+        coef.append((float(theta[0].exp()), float(theta[1].exp()), float(theta[2].sigmoid())))
+        sq.append(loss)
+    q10, q90 = np.percentile(obs.range[keep], [10, 90])
+    est = MediumEstimate(
+        beta_D=tuple(c[0] for c in coef), beta_B=tuple(c[1] for c in coef),  # type: ignore[arg-type]
+        B_inf=tuple(c[2] for c in coef), n_points=len(pid), n_observations=int(keep.sum()),  # type: ignore[arg-type]
+        residual=float(np.sqrt(np.mean(sq))), range_ratio=float(q90 / max(q10, 1e-9)))
+    log.info("medium estimate from %d points / %d sightings: beta_D %s beta_B %s B_inf %s (rms %.4f)",
+             est.n_points, est.n_observations, np.round(est.beta_D, 3), np.round(est.beta_B, 3),
+             np.round(est.B_inf, 3), est.residual)
+    return est

@@ -1,0 +1,68 @@
+"""The water measured from the sparse points before training (pipeline.medium.estimate)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.config import SynthConfig
+from pipeline.medium.estimate import Observations, fit_medium, gather_observations
+from pipeline.scene.images import read_image
+from pipeline.scene.loader import load_scene
+from pipeline.scene.synth import generate_scene
+from pipeline.scene.water_model import WATER_PRESETS
+
+
+def _exact_observations(water, n_points=400, per_point=6, seed=0) -> Observations:
+    rng = np.random.default_rng(seed)
+    point = np.repeat(np.arange(n_points), per_point)
+    r = rng.uniform(1.0, 6.0, point.size)
+    J = rng.uniform(0.05, 0.9, (n_points, 3))
+    bd, bb, binf = (np.asarray(x) for x in (water.beta_D, water.beta_B, water.B_inf))
+    colour = J[point] * np.exp(-bd * r[:, None]) + binf * (1 - np.exp(-bb * r[:, None]))
+    return Observations(point, r, colour)
+
+
+@pytest.mark.parametrize("preset", ["clear", "medium", "turbid"])
+def test_fit_recovers_the_model_it_assumes(preset):
+    water = WATER_PRESETS[preset]
+    est = fit_medium(_exact_observations(water))
+    assert est is not None and est.residual < 1e-4
+    np.testing.assert_allclose(est.beta_D, water.beta_D, rtol=0.02)
+    np.testing.assert_allclose(est.beta_B, water.beta_B, rtol=0.05)
+    np.testing.assert_allclose(est.B_inf, water.B_inf, rtol=0.05)
+
+
+def test_too_few_points_seen_twice_gives_no_estimate():
+    obs = _exact_observations(WATER_PRESETS["medium"], n_points=30)
+    assert fit_medium(obs) is None
+    single = Observations(np.arange(500), np.full(500, 2.0), np.full((500, 3), 0.3))
+    assert fit_medium(single) is None
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    out = {}
+    for preset in ("none", "medium"):
+        root = generate_scene(SynthConfig(views=12, width=128, height=96, preset=preset, seed=5),
+                              tmp_path_factory.mktemp(preset))
+        scene = load_scene(root)
+        out[preset] = (scene, [read_image(root / "images" / v.name) for v in scene.views])
+    return out
+
+
+def test_generated_medium_water_is_measured(generated):
+    scene, images = generated["medium"]
+    obs = gather_observations(scene.points, scene.views, images)
+    est = fit_medium(obs)
+    assert est is not None and est.n_points > 500
+    truth = WATER_PRESETS["medium"].beta_D  # true metric cameras: scene units are metres
+    np.testing.assert_allclose(est.beta_D, truth, rtol=0.2)
+    assert est.beta_D[0] > est.beta_D[1] > est.beta_D[2]
+
+
+def test_no_water_measures_almost_no_attenuation(generated):
+    scene, images = generated["none"]
+    est = fit_medium(gather_observations(scene.points, scene.views, images))
+    assert est is not None
+    assert max(est.beta_D) < 0.05, est  # 1/m; the medium preset's weakest channel is 0.11
