@@ -41,13 +41,17 @@ class JobCancelled(RuntimeError):
     """The job's ``should_cancel`` said stop; completed stages and checkpoints are kept."""
 
 
+# "auto": a short probe on the training views picks one of the others and sizes the model (pipeline.select).
+JOB_MODES: tuple[str, ...] = ("auto", "3dgs", "homogeneous", "dualphys")
+
+
 @dataclass
 class JobOptions:
     """What a user chooses for a job (CLI flags / API form fields)."""
 
     source: str = ""  # archive file or image folder to ingest
     preset: str = "fast"  # training preset: fast | balanced | paper
-    mode: str = "3dgs"  # reconstruction mode
+    mode: str = "auto"  # reconstruction mode, one of JOB_MODES
     max_width: int = 400  # images wider than this are trained at an integer downscale (CPU budget)
     metric_scale: float | None = None  # metres per scene unit, when the user knows it
     iterations: int | None = None  # override the preset's iteration count (tests, quick looks)
@@ -55,6 +59,10 @@ class JobOptions:
     # A generated scene folder (pipeline.scene.synth) to score against; unset: found next to an ``images``
     # source folder when that sits in a generated scene (pipeline.ground_truth).
     ground_truth: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.mode not in JOB_MODES:
+            raise ValueError(f"unknown mode {self.mode!r}; choose from {', '.join(JOB_MODES)}")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -142,8 +150,9 @@ def apply_water_decision(cfg, decision: dict) -> None:
     m.init_optical_depth = tuple(decision.get("init_optical_depth", m.init_optical_depth))  # type: ignore[assignment]
 
 
-def train_config(opts: JobOptions, width: int):
-    """The TrainConfig a job trains with: the preset, the mode, its seed, the downscale for ``max_width``."""
+def train_config(opts: JobOptions, width: int, mode: str | None = None):
+    """The TrainConfig a job trains with: the preset, the mode (``mode`` replaces the job's, which must be
+    given when the job's is "auto"), its seed, the downscale for ``max_width``."""
     from .config import train_preset
 
     cfg = train_preset(opts.preset)
@@ -153,7 +162,9 @@ def train_config(opts: JobOptions, width: int):
         cfg = scaled_train_config(opts.iterations, checkpoint_every=max(1, opts.iterations // 5),
                                   max_gaussians=300_000)
     cfg.seed = opts.seed
-    cfg.mode = opts.mode  # type: ignore[assignment]
+    cfg.mode = mode or opts.mode  # type: ignore[assignment]
+    if cfg.mode == "auto":
+        raise ValueError("train_config: mode 'auto' must be resolved first (pipeline.select)")
     cfg.downscale = max(1, math.ceil(width / opts.max_width))
     from .train_hooks import curve_every
 
@@ -169,18 +180,24 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     scene = load_scene(job / "scene")
     train_views, test_views = split_views(scene.views)
-    cfg = train_config(opts, scene.views[0].camera.width)
-    if cfg.mode != "3dgs" and (job / "water.json").exists():
-        apply_water_decision(cfg, json.loads((job / "water.json").read_text()))
     train_scene = type(scene)(train_views, scene.points, scene.colors, scene.root)
     images = load_images(train_scene)
+    water = json.loads((job / "water.json").read_text()) if (job / "water.json").exists() else None
+    selection = select_mode(job, opts, train_scene, images, water, ctx) if opts.mode == "auto" else None
+    cfg = train_config(opts, scene.views[0].camera.width, selection["chosen"] if selection else None)
+    if selection is not None:  # the Gaussian budget and SH degree scaled to the scene (pipeline.budget)
+        cfg.sh_degree = selection["budget"]["sh_degree"]
+        cfg.densify.max_gaussians = selection["budget"]["max_gaussians"]
+    if cfg.mode != "3dgs" and water is not None:
+        apply_water_decision(cfg, water)
+    start = PROBE_SHARE if selection is not None else 0.0
     from .train_hooks import curve_subset
 
     curve_views = [test_views[i] for i in curve_subset(len(test_views))]  # a few views keep the curve cheap
     test_images = load_images(type(scene)(curve_views, root=scene.root)) if curve_views else []
 
     def progress(it: int, total: int, metrics: dict) -> None:
-        ctx.on_progress("train", it / max(1, total), f"iteration {it}/{total}")
+        ctx.on_progress("train", start + (1 - start) * it / max(1, total), f"iteration {it}/{total}")
 
     try:
         res = train(train_scene, images, cfg, test_views=curve_views, test_images=test_images,
@@ -188,12 +205,32 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
                     device=ctx.device)
     except TrainingCancelled as e:
         raise JobCancelled(str(e)) from e
-    out = {"iterations": res.iteration, "metrics": res.metrics, "history": res.history, "medium": res.medium,
+    out = {"mode": cfg.mode, "iterations": res.iteration, "metrics": res.metrics, "history": res.history,
+           "medium": res.medium,
            "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
            "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale,
            "curve_views": [v.name for v in curve_views]}
     atomic_write_json(job / "train" / "train.json", out)
     return out
+
+
+PROBE_SHARE = 0.1  # of the train stage's progress that the mode probe reports (mode auto)
+
+
+def select_mode(job: Path, opts: JobOptions, scene, images, water: dict | None, ctx: StageContext) -> dict:
+    """``--mode auto``: the probe on the training views (``pipeline.select``) -> ``job/train/selection.json``."""
+    from .select import select_for_job
+    from .train import TrainingCancelled
+
+    base = train_config(opts, scene.views[0].camera.width, "dualphys")  # seed, backend, caps, medium settings
+    if water is not None:
+        apply_water_decision(base, water)
+    try:
+        return select_for_job(job / "train", scene, images, base, water=water,
+                              on_progress=lambda f, m: ctx.on_progress("train", PROBE_SHARE * f, m),
+                              should_cancel=ctx.should_cancel, device=ctx.device)
+    except TrainingCancelled as e:
+        raise JobCancelled(f"cancelled during the mode probe: {e}") from e
 
 
 def stage_evaluate(job: Path, opts: JobOptions, ctx: StageContext) -> dict:

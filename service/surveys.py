@@ -74,7 +74,7 @@ class SurveyOptions(BaseModel):
 
     model_config = {"extra": "forbid"}
     preset: str = "fast"
-    mode: str = "3dgs"
+    mode: str = "auto"
     max_width: int = Field(400, ge=32, le=16384)
     metric_scale: float | None = Field(None, gt=0)
     iterations: int | None = Field(None, ge=1)

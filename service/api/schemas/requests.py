@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import typing
-
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from service.surveys import SurveyOptions
@@ -16,9 +14,9 @@ def _presets() -> list[str]:
 
 
 def _modes() -> list[str]:
-    from pipeline.config import TrainMode
+    from pipeline.job import JOB_MODES
 
-    return list(typing.get_args(TrainMode))
+    return list(JOB_MODES)
 
 
 class JobCreateOptions(BaseModel):
@@ -27,7 +25,8 @@ class JobCreateOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     preset: str = Field("fast", description="training preset: fast | balanced | paper")
-    mode: str = Field("3dgs", description="reconstruction mode")
+    mode: str = Field("auto", description="reconstruction mode: auto (a short probe picks) | 3dgs | homogeneous | "
+                                          "dualphys")
     metric_scale: float | None = Field(None, gt=0, description="metres per scene unit, when known")
     max_width: int = Field(400, ge=32, le=16384, description="images wider than this train at a downscale")
     iterations: int | None = Field(None, ge=1, description="override the preset's iteration count")
