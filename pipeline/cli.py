@@ -34,6 +34,16 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return v
+
+
 def cmd_synth(args: argparse.Namespace) -> int:
     from .config import SynthConfig
     from .scene.synth import generate_scene
@@ -119,6 +129,101 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fail(command: str, message: str) -> int:
+    print(f"dualphys {command}: {message}", file=sys.stderr)
+    return 1
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """The whole job in this process, with progress bars; finished stages (matching markers) are skipped."""
+    from .job import STAGES, JobOptions, StageContext, run_job
+    from .progress import StageProgress
+
+    src = Path(args.input)
+    if not src.exists():
+        return _fail("run", f"{src} does not exist: give a folder of images or a zip/tar archive of them")
+    opts = JobOptions(source=str(src.resolve()), preset=args.preset, mode=args.mode, max_width=args.max_width,
+                      iterations=args.iterations, seed=args.seed)
+    out = Path(args.out)
+    if not args.verbose:  # the bars say where the job is; the stages' log lines would tear them apart
+        logging.getLogger().setLevel(logging.WARNING)
+    bar = StageProgress(STAGES)
+    t0 = time.perf_counter()
+    try:
+        res = run_job(out, opts, StageContext(on_progress=bar))
+    except KeyboardInterrupt:
+        bar.close()
+        return _fail("run", "interrupted; run the same command again to resume from the unfinished stage")
+    except Exception as e:  # every pipeline failure: a message, not a traceback (-v logs it)
+        bar.close()
+        log.debug("job failed", exc_info=True)
+        stage = bar.stage or "job"
+        return _fail("run", f"{stage} failed: {e} (finished stages are kept; -v shows the traceback)")
+    bar.close()
+    train = res.get("train", {})
+    test = res.get("evaluate", {}).get("metrics", {}).get("test", {})
+    selection = out / "train" / "selection.json"
+    print(f"done in {time.perf_counter() - t0:.0f} s; skipped (already done): {', '.join(bar.skipped) or 'none'}")
+    if selection.exists():
+        sel = json.loads(selection.read_text())
+        print(f"mode auto chose {sel['chosen']}: {sel['reason']}")
+    psnr = "n/a" if test.get("psnr") is None else f"{test['psnr']:.2f} dB"
+    print(f"mode {train.get('mode', opts.mode)}, {train.get('n_gaussians', '?')} Gaussians; held-out PSNR with "
+          f"water {psnr}; outputs in {out / 'output'}")
+    print(json.dumps({"job": str(out), "skipped": bar.skipped, "mode": train.get("mode"),
+                      "test_psnr": test.get("psnr"), "report": str(out / "output" / "report.html"),
+                      "seconds": round(time.perf_counter() - t0, 1)}))
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """Restored / with-water (or any exported) images of a trained job, for its views and novel ones."""
+    from .render_job import RenderError, render_job
+    from .scene.loader import SceneLayoutError
+
+    views: str | list[str] = args.views
+    if args.views not in ("all", "none"):
+        views = [n.strip() for n in args.views.split(",") if n.strip()]
+    elif args.views == "none":
+        views = []
+    what = [w.strip() for w in args.what.split(",") if w.strip()]
+    try:
+        counts = render_job(args.job, args.out, views, what, novel=args.orbit)
+    except (RenderError, SceneLayoutError) as e:
+        return _fail("render", str(e))
+    print(json.dumps({"out": str(args.out), **counts}, default=str))
+    return 0
+
+
+def cmd_ablate(args: argparse.Namespace) -> int:
+    """The paper's Table 2 on a generated scene with ground truth."""
+    from .ablate import AblationConfig, format_table, run_ablation
+
+    w, h = args.size
+    only = tuple(n.strip() for n in args.only.split(",") if n.strip()) if args.only else ()
+    cfg = AblationConfig(views=args.views, width=w, height=h, water=args.water, iterations=args.iterations,
+                         seed=args.seed, rows=args.rows, only=only)
+    try:
+        from .ablate import select_rows
+
+        n = len(select_rows(cfg))
+    except ValueError as e:
+        return _fail("ablate", str(e))
+    print(f"ablation: {n} rows x {cfg.iterations} iterations on a generated '{cfg.water}' scene, {cfg.views} views "
+          f"{w}x{h}", file=sys.stderr)
+    done = [0]
+
+    def row_done(r) -> None:
+        done[0] += 1
+        print(f"  [{done[0]}/{n}] {r.name}: PSNR {r.psnr:.2f} dB, restored J {r.restored_psnr:.2f} dB "
+              f"({r.seconds:.0f} s)", file=sys.stderr, flush=True)
+
+    report = run_ablation(args.out, cfg, on_row=row_done)
+    print(format_table(report["rows"]))
+    print(json.dumps({"ablation": str(Path(args.out) / "ablation.json")}))
+    return 0
+
+
 def cmd_train_classifier(args: argparse.Namespace) -> int:
     from .water import train_classifier
 
@@ -172,6 +277,42 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=Path("demo-out"))
     s.add_argument("--iterations", type=int, default=1500, help="training iterations (CPU budget)")
     s.set_defaults(func=cmd_demo)
+
+    from .job import JOB_MODES  # light: no torch
+
+    s = sub.add_parser("run", help="run a whole job (ingest, sfm, classify, train, evaluate, export) in this "
+                                   "process; re-running resumes")
+    s.add_argument("input", type=Path, help="a folder of images or a zip/tar archive of them")
+    s.add_argument("--out", required=True, type=Path, help="the job folder (created; reused to resume)")
+    s.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
+    s.add_argument("--mode", default="auto", choices=list(JOB_MODES),
+                   help="auto (default): a short probe picks the simplest mode the scene needs")
+    s.add_argument("--iterations", type=_positive, default=None, help="override the preset's iteration count")
+    s.add_argument("--max-width", type=_positive, default=400, help="train wider images at an integer downscale")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_run)
+
+    s = sub.add_parser("render", help="render a trained job's views (restored, with water, maps) and novel views")
+    s.add_argument("job", type=Path, help="a job folder that `dualphys run` trained")
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--views", default="all", help="all | none | comma-separated view names (with or without "
+                                                  "extension)")
+    s.add_argument("--what", default="restored,with_water",
+                   help="comma-separated: restored, with_water, depth, attenuation, backscatter")
+    s.add_argument("--orbit", type=int, default=0, metavar="N",
+                   help="also render N novel views on a smooth path through the job's cameras")
+    s.set_defaults(func=cmd_render)
+
+    s = sub.add_parser("ablate", help="the paper's Table 2 (module and loss ablations) on a generated scene")
+    s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--iterations", type=_positive, default=1500, help="training iterations per row")
+    s.add_argument("--views", type=_positive, default=16)
+    s.add_argument("--size", type=_size, default=(160, 120), help="WxH, e.g. 160x120")
+    s.add_argument("--water", default="medium", choices=["clear", "medium", "turbid"])
+    s.add_argument("--rows", default="paper", choices=["paper", "leave-one-out"])
+    s.add_argument("--only", default="", help="comma-separated row names to run (default: the whole set)")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_ablate)
     return p
 
 

@@ -88,8 +88,13 @@ def render_outputs(gaussians: dict[str, torch.Tensor], view: View, medium: Mediu
         return ViewOutputs(J.numpy(), hwc(mo.I), hwc(mo.A), hwc(mo.B), (z * (alpha > 1e-3)).numpy(), alpha.numpy())
 
 
-def export_views(state: dict[str, Any], views: Sequence[View], out: str | Path, backend: str = "auto") -> dict:
-    """Write the restored outputs of every view from a training checkpoint ``state``; returns counts."""
+EXPORT_FOLDERS = ("restored", "with_water", "depth", "attenuation", "backscatter")  # the last two: medium modes
+
+
+def export_views(state: dict[str, Any], views: Sequence[View], out: str | Path, backend: str = "auto",
+                 what: Sequence[str] | None = None) -> dict:
+    """Write the restored outputs of every view from a training checkpoint ``state``; returns counts.
+    ``what`` limits the folders written (default: all that the model has; see :data:`EXPORT_FOLDERS`)."""
     from .scene.images import write_image
 
     out = Path(out)
@@ -99,16 +104,18 @@ def export_views(state: dict[str, Any], views: Sequence[View], out: str | Path, 
                for v in views]
     zmax = max(float(r.depth.max()) for _, r in results) or 1.0
     folders = ["restored", "with_water", "depth"] + (["attenuation", "backscatter"] if medium is not None else [])
+    if what is not None:
+        folders = [f for f in folders if f in what]
     for f in folders:
         (out / f).mkdir(parents=True, exist_ok=True)
     for v, r in results:
         stem = Path(v.name).stem
-        write_image(out / "restored" / f"{stem}.png", r.J)
-        write_image(out / "with_water" / f"{stem}.png", r.I)
-        if r.A is not None and r.B is not None:
-            write_image(out / "attenuation" / f"{stem}.png", r.A)
-            write_image(out / "backscatter" / f"{stem}.png", r.B)
-        write_image(out / "depth" / f"{stem}.png", np.clip(r.depth / zmax, 0, 1), bits=16)
-        np.save(out / "depth" / f"{stem}.npy", r.depth.astype(np.float32))
+        images = {"restored": r.J, "with_water": r.I, "attenuation": r.A, "backscatter": r.B}
+        for f in folders:
+            if f == "depth":
+                write_image(out / "depth" / f"{stem}.png", np.clip(r.depth / zmax, 0, 1), bits=16)
+                np.save(out / "depth" / f"{stem}.npy", r.depth.astype(np.float32))
+            else:
+                write_image(out / f / f"{stem}.png", images[f])
     log.info("exported %d views (%s) to %s", len(results), ", ".join(folders), out)
     return {"views": len(results), "folders": folders, "depth_max": zmax}

@@ -1,0 +1,90 @@
+"""`dualphys run`, `render` and `ablate` in-process through the CLI's main(): exit codes, messages, resuming."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.config import SynthConfig
+from pipeline.scene.synth import generate_scene
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    # 12 views 160x120: what SfM registers reliably; trained at 80x60 (--max-width 80)
+    return generate_scene(SynthConfig(views=12, width=160, height=120, preset="medium", seed=0),
+                          tmp_path_factory.mktemp("scene"))
+
+
+def _last_json(text: str) -> dict:
+    return json.loads(text.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
+    job = tmp_path / "job"
+    argv = ["run", str(scene / "images"), "--out", str(job), "--mode", "homogeneous", "--iterations", "60",
+            "--max-width", "80"]
+    assert main(argv) == 0
+    first = _last_json(capsys.readouterr().out)
+    assert first["skipped"] == [] and first["mode"] == "homogeneous"
+    for f in ("reconstruction.ply", "report.json", "report.html"):
+        assert (job / "output" / f).is_file(), f
+    assert len(list((job / "output" / "restored").glob("*.png"))) == 12
+
+    assert main(argv) == 0
+    out = capsys.readouterr()
+    again = _last_json(out.out)
+    assert again["skipped"] == ["ingest", "sfm", "classify", "train", "evaluate", "export"]
+    assert "skipped (already done)" in out.err  # the progress lines say so too
+
+    rendered = tmp_path / "render"
+    assert main(["render", str(job), "--out", str(rendered), "--views", "frame_0001,frame_0002.png",
+                 "--what", "restored,with_water,attenuation", "--orbit", "3"]) == 0
+    summary = _last_json(capsys.readouterr().out)
+    assert summary["views"] == 5 and summary["novel"] == 3
+    for folder in ("restored", "with_water", "attenuation"):
+        names = sorted(p.name for p in (rendered / folder).glob("*.png"))
+        assert names == ["frame_0001.png", "frame_0002.png", "novel_0000.png", "novel_0001.png", "novel_0002.png"]
+    assert not (rendered / "depth").exists()
+
+    assert main(["render", str(job), "--out", str(rendered), "--views", "nope"]) == 1
+    assert "no view named nope" in capsys.readouterr().err
+
+
+def test_run_and_render_errors_are_one_line_messages(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "job")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("dualphys run: ") and "does not exist" in err and "Traceback" not in err
+
+    (tmp_path / "empty").mkdir()
+    assert main(["run", str(tmp_path / "empty"), "--out", str(tmp_path / "job")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("dualphys run: ingest failed:") and "at least 3" in err
+
+    assert main(["render", str(tmp_path / "job"), "--out", str(tmp_path / "r")]) == 1
+    assert "no trained model" in capsys.readouterr().err
+
+    with pytest.raises(SystemExit) as e:  # a bad command line is argparse's exit 2
+        main(["run", str(tmp_path), "--out", str(tmp_path / "job"), "--mode", "bogus"])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:
+        main(["run", str(tmp_path), "--out", str(tmp_path / "job"), "--iterations", "0"])
+    assert e.value.code == 2
+
+
+def test_ablate_prints_the_table_and_writes_json(tmp_path, capsys):
+    out = tmp_path / "ablation"
+    assert main(["ablate", "--out", str(out), "--iterations", "40", "--views", "8", "--size", "64x48",
+                 "--only", "3DGS,Total,MSBs only,L_ab only"]) == 0
+    printed = capsys.readouterr().out
+    report = json.loads((out / "ablation.json").read_text())
+    assert [r["name"] for r in report["rows"]] == ["3DGS", "Total", "MSBs only", "L_ab only"]
+    for r in report["rows"]:
+        assert r["psnr"] > 10 and r["restored_psnr"] > 5 and r["seconds"] > 0
+        assert r["name"] in printed
+    assert report["rows"][0]["restored_psnr"] < report["rows"][0]["psnr"]  # 3dgs restores nothing: J = I
+    assert main(["ablate", "--out", str(out), "--only", "no such row"]) == 1
