@@ -146,13 +146,13 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig) -> tuple[str, str]:
     plain = scores["3dgs"].psnr if "3dgs" in scores else -math.inf
     best_medium = max(media, key=lambda m: media[m].psnr, default=None)
     if best_medium is None or water < cfg.min_effect:
-        return "3dgs", f"3dgs: no water worth modelling (learned water {water:.3f} < {cfg.min_effect:g}). {detail}"
+        return "3dgs", f"no water worth modelling (learned water {water:.3f} < {cfg.min_effect:g}). {detail}"
     if media[best_medium].psnr < plain:
-        return "3dgs", (f"3dgs: the learned water ({water:.3f}) does not predict the held-back views better than "
+        return "3dgs", (f"the learned water ({water:.3f}) does not predict the held-back views better than "
                         f"plain splatting ({media[best_medium].psnr:.2f} < {plain:.2f} dB). {detail}")
     best = media[best_medium].psnr
     mode = next(m for m in MODES if m in media and media[m].psnr >= best - cfg.margin_db)
-    return mode, (f"{mode}: the scene has water ({water:.3f} >= {cfg.min_effect:g}) that predicts the held-back "
+    return mode, (f"the scene has water ({water:.3f} >= {cfg.min_effect:g}) that predicts the held-back "
                   f"views at least as well as plain splatting; the simplest medium mode within {cfg.margin_db:g} dB "
                   f"of the best ({best_medium}). {detail}")
 
@@ -299,7 +299,7 @@ def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: Tra
     if len(scene.views) < cfg.min_views:
         sel = Selection(requested="auto", chosen="3dgs",
                         margin={"margin_db": cfg.margin_db, "min_effect": cfg.min_effect},
-                        reason=f"3dgs: {len(scene.views)} training views are too few to hold some back for the probe "
+                        reason=f"{len(scene.views)} training views are too few to hold some back for the probe "
                                f"(it needs {cfg.min_views}); the simplest mode", probe={},
                         probe_setup={"skipped": True}, water=_water_summary(water))
     else:
