@@ -180,7 +180,7 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     scene = load_scene(job / "scene")
     train_views, test_views = split_views(scene.views)
-    train_scene = type(scene)(train_views, scene.points, scene.colors, scene.root)
+    train_scene = scene.subset(train_views)
     images = load_images(train_scene)
     water = json.loads((job / "water.json").read_text()) if (job / "water.json").exists() else None
     selection = select_mode(job, opts, train_scene, images, water, ctx) if opts.mode == "auto" else None

@@ -150,6 +150,7 @@ class LossWeights:
     w_ms: float = 0.1  # w5
     w_floater: float = 0.005  # not in the paper: keeps the water column free of floaters
     mu: float = 0.1  # complementarity weight inside L_ab
+    anchor: float = 1.0  # weight of the measured-water anchors inside L_attenuation and L_scattering
     gamma_wat: float = 1.0  # γ inside L_wat
     lam_edge: float = 0.5
     lam_ms: float = 1.0
@@ -172,10 +173,10 @@ def loss_terms(
     raw: dict[str, Tensor] = {"basic": basic_loss(render, target, w.ssim_weight)}
     raw["ab"] = consistency_loss(A, B_frac, D, depth_scale, w.mu)
     if "wat" in enabled:
-        raw["attenuation"] = log_anchor(*anchor["attenuation"]) if anchor else attenuation_prior(J)
+        raw["attenuation"] = w.anchor * log_anchor(*anchor["attenuation"]) if anchor else attenuation_prior(J)
         raw["scattering"] = scattering_prior(B, target, alpha)
         if anchor:
-            raw["scattering"] = raw["scattering"] + log_anchor(*anchor["backscatter"])
+            raw["scattering"] = raw["scattering"] + w.anchor * log_anchor(*anchor["backscatter"])
         raw["wat"] = water_adaptive_loss(raw["attenuation"], raw["scattering"], raw["ab"], alpha_w, beta_w,
                                          w.gamma_wat)
     if "edge" in enabled:

@@ -17,7 +17,7 @@ from pipeline.job import apply_water_decision
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.scene.synth import generate_scene
-from pipeline.scene.types import Scene, ray_length_factor
+from pipeline.scene.types import ray_length_factor
 from pipeline.scene.water_model import WATER_PRESETS
 from pipeline.train import Trainer
 from pipeline.water import classify
@@ -41,7 +41,7 @@ def test_learned_medium_carries_the_water(tmp_path, preset, record_property):
     images = [read_image(root / "images" / v.name) for v in scene.views]
     cfg, decision = _config(900, images)
     record_property("water", decision["water_type"])
-    tr = Trainer(Scene(scene.views, scene.points, scene.colors, root), images, cfg)
+    tr = Trainer(scene, images, cfg)
     tr.run([])
     water = WATER_PRESETS[preset]
     bd, bb, binf = (np.asarray(x) for x in (water.beta_D, water.beta_B, water.B_inf))

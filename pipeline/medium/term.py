@@ -61,8 +61,9 @@ class MediumTerm:
         init = {"init_beta": tuple(float(x) for x in tau / self.depth_scale),
                 "init_binf": tuple(float(x) for x in binf.clamp(0.02, 0.95).tolist())}
         self.estimate: dict[str, Any] | None = None
+        self.beta_eff_mean: Tensor | None = None
         if cfg.colour_prior == "tracks" and len(scene.points):
-            est = fit_medium(gather_observations(scene.points, views, targets), cfg.init_optical_depth)
+            est = fit_medium(gather_observations(scene.points, views, targets, scene.sightings), cfg.init_optical_depth)
             if est is not None:
                 self.estimate = est.to_dict()
                 init = {"init_beta": est.beta_D, "init_beta_b": est.beta_B, "init_binf": est.B_inf}
@@ -98,6 +99,9 @@ class MediumTerm:
     def losses(self, view_index: int, J: Tensor, alpha: Tensor, depth: Tensor, target: Tensor) -> dict[str, Tensor]:
         """Eq. 13's weighted terms for one view (their sum is L_total)."""
         out, D = self.apply(view_index, J, alpha, depth)
+        with torch.no_grad():  # running mean over views of eq. 5's effective coefficient, for the report
+            b = out.beta_eff.detach()
+            self.beta_eff_mean = b if self.beta_eff_mean is None else 0.95 * self.beta_eff_mean + 0.05 * b
         enabled = frozenset(self.cfg.losses)
         _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha),
                                  self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled,
@@ -128,20 +132,25 @@ class MediumTerm:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
 
-    def effective_coefficients(self) -> dict[str, list[float]]:
-        """The global per-channel coefficients (β_D including w_c and T; β_B; B∞) in 1/scene-unit."""
+    def effective_coefficients(self) -> dict[str, Any]:
+        """The global per-channel coefficients in 1/scene-unit: β_D as the running mean over training views of
+        the effective coefficient (w_c·β_c·(1 − γE)·T, eq. 5), β_B, B∞; plus the pre-training estimate."""
         m = self.medium
         with torch.no_grad():
-            bd = (m.w * m.beta_D * m.water_factor).tolist()
-            return {"beta_D": bd, "beta_B": m.beta_B.tolist(), "B_inf": m.B_inf.tolist(),
-                    "depth_scale": self.depth_scale, "units": "1/scene-unit (x metric scale for 1/m)"}
+            base = m.w * m.beta_D * m.water_factor
+            bd = self.beta_eff_mean if self.beta_eff_mean is not None else base
+            return {"beta_D": bd.tolist(), "beta_D_base": base.tolist(), "beta_B": m.beta_B.tolist(),
+                    "B_inf": m.B_inf.tolist(), "depth_scale": self.depth_scale, "estimate": self.estimate,
+                    "units": "1/scene-unit (x metric scale for 1/m)"}
 
     def state_dict(self) -> dict[str, Any]:
         return {"mode": self.mode, "config": asdict(self.cfg), "module": self.medium.state_dict(),
-                "optimizer": self.optimizer.state_dict(), "depth_scale": self.depth_scale, "estimate": self.estimate}
+                "optimizer": self.optimizer.state_dict(), "depth_scale": self.depth_scale, "estimate": self.estimate,
+                "beta_eff_mean": self.beta_eff_mean}
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.medium.load_state_dict(sd["module"])
         self.optimizer.load_state_dict(sd["optimizer"])
         self.depth_scale = float(sd["depth_scale"])
         self.estimate = sd.get("estimate")
+        self.beta_eff_mean = sd.get("beta_eff_mean")

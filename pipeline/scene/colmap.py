@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .types import Camera, Scene, View
+from .types import Camera, Scene, Sightings, View
 
 log = logging.getLogger(__name__)
 
@@ -122,11 +122,25 @@ def read_colmap(
             )
         )
     views.sort(key=lambda v: v.name)
-    pts = list(rec.points3D.values())
-    points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
-    colors = np.array([p.color for p in pts], dtype=np.float64).reshape(-1, 3) / 255.0
+    ids = list(rec.points3D.keys())
+    row = {pid: i for i, pid in enumerate(ids)}
+    points = np.array([rec.points3D[p].xyz for p in ids], dtype=np.float64).reshape(-1, 3)
+    colors = np.array([rec.points3D[p].color for p in ids], dtype=np.float64).reshape(-1, 3) / 255.0
     log.debug("read %d views, %d points from %s", len(views), len(points), sparse_dir)
-    return Scene(views=views, points=points, colors=colors, root=sparse_dir)
+    return Scene(views=views, points=points, colors=colors, root=sparse_dir, sightings=_sightings(rec, row))
+
+
+def _sightings(rec, row: dict[int, int]) -> dict[str, Sightings]:  # rec: pycolmap.Reconstruction
+    """Per registered image, the 2D observations that belong to a 3D point (the model's tracks)."""
+    out = {}
+    for im in rec.images.values():
+        if not im.has_pose:
+            continue
+        obs = [(row[p.point3D_id], p.xy) for p in im.points2D if p.has_point3D() and p.point3D_id in row]
+        point = np.array([o[0] for o in obs], dtype=np.int64)
+        xy = np.array([o[1] for o in obs], dtype=np.float64).reshape(-1, 2)
+        out[im.name] = Sightings(point, xy, int(rec.cameras[im.camera_id].width))
+    return out
 
 
 def write_colmap_text(scene: Scene, out_dir: str | os.PathLike[str]) -> Path:

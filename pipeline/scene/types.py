@@ -60,6 +60,16 @@ class View:
         return m
 
 
+@dataclass(frozen=True)
+class Sightings:
+    """Where one view saw the sparse points (the model's tracks): point indices into ``Scene.points`` and their
+    pixel positions in an image ``width`` pixels wide (the model's camera; rescale for other resolutions)."""
+
+    point: np.ndarray  # [K] int
+    xy: np.ndarray  # [K, 2] float, pixel-centre convention (top-left pixel centre at 0.5, 0.5)
+    width: int
+
+
 @dataclass
 class Scene:
     """Posed views plus sparse points; what a trainer needs."""
@@ -68,6 +78,11 @@ class Scene:
     points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [P, 3] world xyz
     colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [P, 3] in [0, 1]
     root: Path | None = None
+    sightings: dict[str, Sightings] | None = None  # view name -> its track observations, when the model has them
+
+    def subset(self, views: list[View]) -> Scene:
+        """The same points and tracks with only ``views`` (e.g. the training split)."""
+        return Scene(views, self.points, self.colors, self.root, self.sightings)
 
     def view(self, name: str) -> View:
         for v in self.views:
