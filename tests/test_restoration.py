@@ -4,8 +4,8 @@ ordered red > green > blue.
 
 The scene uses the generator's true cameras and tracks (scene units are metres), 24 views at 160x120 and the
 held-out split of every 8th view; restored J is scored against the true clean images of the held-out views.
-Measured on this machine (1500 iterations): 3DGS on clean 24.6 dB, DualPhys 23.7 dB, 3DGS on underwater
-13.4 dB; recovered β_D 0.62 / 0.20 / 0.12 per metre against the true 0.55 / 0.17 / 0.11.
+Measured on this machine (1000 iterations): 3DGS on clean 24.3 dB, DualPhys 24.0 dB, 3DGS on underwater
+13.6 dB; recovered β_D 0.57 / 0.20 / 0.12 per metre against the true 0.55 / 0.17 / 0.11. About 4-8 min.
 """
 
 from __future__ import annotations
