@@ -167,7 +167,6 @@ def run_ablation(out: str | Path, cfg: AblationConfig,
     from .scene.loader import load_scene
     from .scene.split import split_views
     from .scene.synth import generate_scene
-    from .scene.types import Scene
     from .stages import atomic_write_json
     from .train import Trainer
     from .water import classify
@@ -187,7 +186,7 @@ def run_ablation(out: str | Path, cfg: AblationConfig,
     photos = [read_image(root / "images" / v.name) for v in test_views]
     clean = [read_image(root / "clean" / v.name) for v in test_views]
     water = classify(images[:: max(1, len(images) // 8)]).to_dict()
-    train_scene = Scene(train_views, scene.points, scene.colors, root)
+    train_scene = scene.subset(train_views)
     results: list[RowResult] = []
     for row in rows:
         tc = row_config(row, cfg, water)

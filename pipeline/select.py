@@ -222,7 +222,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
     t_start = time.perf_counter()
     fit, held = holdout_split(scene.views, scene.points, cfg.holdout_fraction)
     width = scene.views[0].camera.width
-    fit_scene = Scene([scene.views[i] for i in fit], scene.points, scene.colors, scene.root)
+    fit_scene = scene.subset([scene.views[i] for i in fit])  # keeps the points' tracks
     fit_images = [images[i] for i in fit]
     cfg3 = probe_config(base, cfg, width, "3dgs")
     held_views, held_targets = prepare_images([scene.views[i] for i in held], [images[i] for i in held],
@@ -310,7 +310,7 @@ def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: Tra
                           base.densify.max_gaussians, base.sh_degree)
     out = {**sel.to_json(), "budget": budget.to_json(), "key": key}
     atomic_write_json(path, out)
-    return out
+    return json.loads(path.read_text())  # exactly what a resumed job and the report will read
 
 
 SELECTION_FILE = "selection.json"

@@ -70,7 +70,7 @@ def _probe(tmp_path, preset: str) -> tuple[dict, float]:
     root = generate_scene(SynthConfig(views=16, width=120, height=90, preset=preset, seed=0), tmp_path / preset)
     scene = load_scene(root)
     train_views, _ = split_views(scene.views)
-    train_scene = Scene(train_views, scene.points, scene.colors, root)
+    train_scene = scene.subset(train_views)
     images = load_images(train_scene)
     water = classify(images[::2]).to_dict()
     job = tmp_path / f"job-{preset}"
@@ -100,7 +100,7 @@ def test_auto_picks_3dgs_without_water_and_a_medium_in_turbid_water(tmp_path, re
     root = tmp_path / "none"
     scene = load_scene(root)
     train_views, _ = split_views(scene.views)
-    train_scene = Scene(train_views, scene.points, scene.colors, root)
+    train_scene = scene.subset(train_views)
     images = load_images(train_scene)
     t0 = time.perf_counter()
     again = select_mode(tmp_path / "job-none", JobOptions(mode="auto"), train_scene, images,
