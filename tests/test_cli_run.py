@@ -88,3 +88,22 @@ def test_ablate_prints_the_table_and_writes_json(tmp_path, capsys):
         assert r["name"] in printed
     assert report["rows"][0]["restored_psnr"] < report["rows"][0]["psnr"]  # 3dgs restores nothing: J = I
     assert main(["ablate", "--out", str(out), "--only", "no such row"]) == 1
+
+
+def test_progress_lines_without_tqdm():
+    import io
+
+    from pipeline.progress import StageProgress
+
+    buf = io.StringIO()
+    p = StageProgress(["ingest", "train"], stream=buf, use_tqdm=False, min_interval=3600)
+    p("ingest", 0.0, "started")
+    p("ingest", 1.0, "skipped (already done)")
+    p("train", 0.0, "started")
+    p("train", 0.5, "iteration 5/10")  # throttled: within min_interval of the last line
+    p("train", 1.0, "iteration 10/10")
+    p("train", 1.0, "done")  # the stage already reported its end
+    lines = buf.getvalue().splitlines()
+    assert lines == ["[1/2] ingest:   0.0% started", "[1/2] ingest: 100.0% skipped (already done)",
+                     "[2/2] train:   0.0% started", "[2/2] train: 100.0% iteration 10/10"]
+    assert p.skipped == ["ingest"]
