@@ -113,9 +113,15 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
     assert c.get(by_path["output/reconstruction.ply"]["url"], headers={"Range": "chars=1-2"}).status_code == 400
     train = c.get(by_path["train/train.json"]["url"]).json()
     assert train["iterations"] == ITERATIONS
-    # restored views, maps and report.json come with later export stages; check whatever export wrote
-    if "output/report.json" in by_path:
-        assert isinstance(c.get(by_path["output/report.json"]["url"]).json(), dict)
+    # the report and the restored views are downloadable one by one
+    report = c.get(by_path["output/report.json"]["url"]).json()
+    assert report["schema_version"] >= 1 and report["model"]["n_gaussians"] == len(gaussians["means"])
+    assert report["metrics"]["test"]["psnr"] > 10 and "output/report.html" in by_path
+    restored = sorted(p for p in by_path if p.startswith("output/restored/") and p.endswith(".png"))
+    with_water = [p for p in by_path if p.startswith("output/with_water/") and p.endswith(".png")]
+    assert len(restored) >= 10 and len(restored) == len(with_water), restored  # one per registered view
+    png = c.get(by_path[restored[0]]["url"])
+    assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
     for a in arts:
         assert a["size"] > 0 and len(a["sha256"]) == 64
     bundle = c.get(f"/v1/jobs/{jid}/bundle")
