@@ -124,13 +124,9 @@ def multiscale_loss(render: Tensor, target: Tensor, lam_ms: float = 1.0, scales:
     """Eq. 12: L_ms = L1(O, T) + λ_ms/|S| Σ_s L1(D_s O, D_s T), S = {1, ½, ¼}, antialiased (box) downsampling."""
     total = (render - target).abs().mean()
     acc = render.new_zeros(())
-    for s in scales:
-        if s == 1:
-            o, t = render, target
-        else:
-            o = F.avg_pool2d(render, s, ceil_mode=True)
-            t = F.avg_pool2d(target, s, ceil_mode=True)
-        acc = acc + (o - t).abs().mean()
+    for s in scales:  # the full-resolution term is the one already computed
+        acc = acc + (total if s == 1 else (F.avg_pool2d(render, s, ceil_mode=True)
+                                          - F.avg_pool2d(target, s, ceil_mode=True)).abs().mean())
     return total + lam_ms / len(scales) * acc
 
 

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from ..config import MediumConfig
@@ -118,10 +119,12 @@ class MediumTerm:
         def t(key: str) -> Tensor:
             return torch.as_tensor(self.estimate[key], dtype=D.dtype, device=D.device).reshape(1, 3, 1, 1)  # type: ignore[index]
 
-        b_ref = t("B_inf") * (1 - torch.exp(-t("beta_B") * D))
         dims = (0, 2, 3)
+        with torch.no_grad():  # the measured curve at the rendered ranges; 4x4-pooled, it only enters a mean
+            Dp, ap = F.avg_pool2d(D, 4, ceil_mode=True), F.avg_pool2d(alpha, 4, ceil_mode=True)
+            b_ref = (ap * t("B_inf") * (1 - torch.exp(-t("beta_B") * Dp))).mean(dims)
         return {"attenuation": (out.beta_eff, t("beta_D").flatten()),
-                "backscatter": ((alpha * out.B).mean(dims), (alpha * b_ref).mean(dims).detach())}
+                "backscatter": ((alpha * out.B).mean(dims), b_ref)}
 
     @staticmethod
     def warmup_loss(image: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
