@@ -145,11 +145,7 @@ def row_config(row: AblationRow, cfg: AblationConfig, water: dict):
 
 def _score_row(trainer, views, photos, clean) -> dict[str, float]:
     from .metrics import mean_ssim, pooled_psnr
-    from .restore import render_outputs
-
-    medium = trainer.medium.medium if trainer.medium is not None else None
-    outs = [render_outputs(trainer.gaussians, v, medium, trainer.max_sh_degree, trainer.cfg.backend,
-                           trainer.background) for v in views]
+    outs = [trainer.outputs(v) for v in views]
     with_water = list(zip([o.I for o in outs], photos, strict=True))
     restored = list(zip([o.J for o in outs], clean, strict=True))
     return {"psnr": pooled_psnr(with_water), "ssim": mean_ssim(with_water),

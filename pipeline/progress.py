@@ -64,7 +64,8 @@ class StageProgress:
         now = time.monotonic()
         if fraction <= 0.0 or done or now - self._last >= self.min_interval:
             self._last = now
-            print(f"{self._label(stage)}: {100 * fraction:5.1f}% {message}", file=self.stream, flush=True)
+            self.stream.write(f"{self._label(stage)}: {100 * fraction:5.1f}% {message}\n")
+            self.stream.flush()
 
     def close(self) -> None:
         if self._bar is not None:

@@ -95,14 +95,10 @@ def view_ranges(points: np.ndarray, views: Sequence[View]) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.full(len(views), np.nan)
     for k, v in enumerate(views):
-        cam = pts @ v.R.T + v.t  # [N, 3]
-        z = cam[:, 2]
-        front = z > 1e-6
-        u = v.camera.fx * cam[front, 0] / z[front] + v.camera.cx
-        w = v.camera.fy * cam[front, 1] / z[front] + v.camera.cy
+        u, w, _ = v.project(pts)  # NaN behind the camera: fails the test below
         inside = (u >= 0) & (u < v.camera.width) & (w >= 0) & (w < v.camera.height)
         if inside.any():
-            out[k] = float(np.median(np.linalg.norm(pts[front][inside] - v.center, axis=1)))
+            out[k] = float(np.median(np.linalg.norm(pts[inside] - v.center, axis=1)))
     return out
 
 
@@ -173,11 +169,7 @@ def probe_config(base: TrainConfig, cfg: ProbeConfig, width: int, mode: str) -> 
 
 def _render_held(trainer, views: Sequence[View]) -> list:
     """The trained probe model's outputs (I, A, B, alpha) for the held-back views."""
-    from .restore import render_outputs
-
-    medium = trainer.medium.medium if trainer.medium is not None else None
-    return [render_outputs(trainer.gaussians, v, medium, trainer.max_sh_degree, trainer.cfg.backend,
-                           trainer.background) for v in views]
+    return [trainer.outputs(v) for v in views]
 
 
 def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndarray]) -> dict[str, float]:

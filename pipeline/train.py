@@ -29,7 +29,7 @@ from pipeline.config import TrainConfig, from_dict, to_dict
 from pipeline.image_losses import l1, ssim
 from pipeline.medium.term import MediumTerm
 from pipeline.render_view import RenderOutput, render_gaussians, render_view, view_tensors
-from pipeline.restore import render_outputs
+from pipeline.restore import ViewOutputs, render_outputs
 from pipeline.scene.types import Scene, View
 from pipeline.splat.densify import Densifier
 from pipeline.splat.gaussians import GAUSSIAN_KEYS
@@ -152,11 +152,14 @@ class Trainer:
             return self.medium.losses(i, out.image, out.alpha, out.depth, self.targets[i])
         return photometric_losses(out.image, self.targets[i], self.cfg.ssim_weight)
 
+    def outputs(self, view: View) -> ViewOutputs:
+        """Everything the model renders for ``view`` (J, I, A, B, depth, alpha), through the medium once it is on."""
+        medium = self.medium.medium if self.medium is not None and self.medium_on(self.iteration) else None
+        return render_outputs(self.gaussians, view, medium, self.max_sh_degree, self.cfg.backend, self.background)
+
     def predict(self, view: View) -> Tensor:
         """The photo this model predicts for ``view`` (with water in medium modes), clamped. [H, W, 3]"""
-        medium = self.medium.medium if self.medium is not None and self.medium_on(self.iteration) else None
-        out = render_outputs(self.gaussians, view, medium, self.max_sh_degree, self.cfg.backend, self.background)
-        return torch.from_numpy(out.I)
+        return torch.from_numpy(self.outputs(view).I)
 
     def step(self) -> dict[str, float]:
         """One iteration: render a view, loss, backward, Adam, densification."""

@@ -15,7 +15,6 @@ import pytest
 from pipeline.config import SynthConfig, scaled_train_config
 from pipeline.job import apply_water_decision
 from pipeline.metrics import pooled_psnr
-from pipeline.restore import render_outputs
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.scene.split import split_views
@@ -43,9 +42,7 @@ def _train_and_score(root, scene, train_views, test_views, mode: str, folder: st
         apply_water_decision(cfg, classify(images[::2]).to_dict())
     tr = Trainer(scene.subset(train_views), images, cfg)
     tr.run([])
-    medium = tr.medium.medium if tr.medium is not None else None
-    pairs = [(render_outputs(tr.gaussians, v, medium, tr.max_sh_degree, "cpu", tr.background).J,
-              read_image(root / "clean" / v.name)) for v in test_views]
+    pairs = [(tr.outputs(v).J, read_image(root / "clean" / v.name)) for v in test_views]
     coef = tr.medium.effective_coefficients() if tr.medium is not None else None
     return pooled_psnr(pairs), coef
 

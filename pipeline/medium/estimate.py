@@ -20,6 +20,7 @@ points themselves.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -92,13 +93,8 @@ def gather_observations(points: np.ndarray, views: Sequence[View], images: Seque
 def _visible_projections(pts: np.ndarray, v: View, W: int, H: int, cell_px: int, depth_tolerance: float,
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(point indices, u, v) of the points in front of the camera, inside the image and nearest in their cell."""
-    cam = (pts @ v.R.T) + v.t
-    z = cam[:, 2]
-    ok = z > 1e-6
-    zs = np.where(ok, z, 1.0)
-    u = v.camera.fx * cam[:, 0] / zs + v.camera.cx
-    w = v.camera.fy * cam[:, 1] / zs + v.camera.cy
-    ok &= (u >= 0) & (u < W) & (w >= 0) & (w < H)
+    u, w, z = v.project(pts)
+    ok = (u >= 0) & (u < W) & (w >= 0) & (w < H)  # NaN (behind the camera) fails
     ids = np.nonzero(ok)[0]
     if ids.size == 0:
         return ids, u[ids], w[ids]
@@ -107,6 +103,27 @@ def _visible_projections(pts: np.ndarray, v: View, W: int, H: int, cell_px: int,
     np.minimum.at(zmin, cell, z[ids])
     vis = ids[z[ids] <= zmin[cell] * (1 + depth_tolerance)]
     return vis, u[vis], w[vis]
+
+
+_CACHE: dict[str, MediumEstimate | None] = {}  # the last few fits, keyed by their sightings and start
+_CACHE_SIZE = 4
+
+
+def measure_water(points: np.ndarray, views: Sequence[View], images: Sequence[np.ndarray | torch.Tensor],
+                  sightings: dict[str, Sightings] | None, init_optical_depth: Sequence[float],
+                  ) -> MediumEstimate | None:
+    """:func:`fit_medium` of :func:`gather_observations`, remembered: the mode probe and the ablation train several
+    models on the same views, and each fit costs seconds."""
+    obs = gather_observations(points, views, images, sightings)
+    h = hashlib.sha1()
+    for a in (obs.point, obs.range, obs.colour, np.asarray(init_optical_depth, dtype=np.float64)):
+        h.update(np.ascontiguousarray(a).tobytes())
+    key = h.hexdigest()
+    if key not in _CACHE:
+        while len(_CACHE) >= _CACHE_SIZE:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = fit_medium(obs, init_optical_depth)
+    return _CACHE[key]
 
 
 def _channel_loss(theta: torch.Tensor, inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Tensor,  # noqa: E741

@@ -21,7 +21,7 @@ from torch import Tensor
 from ..config import MediumConfig
 from ..losses import LossWeights, basic_loss, loss_terms
 from ..scene.types import Scene, View, ray_length_factor
-from .estimate import fit_medium, gather_observations
+from .estimate import measure_water
 from .model import Medium, MediumOutput
 
 log = logging.getLogger(__name__)
@@ -64,7 +64,7 @@ class MediumTerm:
         self.estimate: dict[str, Any] | None = None
         self.beta_eff_mean: Tensor | None = None
         if cfg.colour_prior == "tracks" and len(scene.points):
-            est = fit_medium(gather_observations(scene.points, views, targets, scene.sightings), cfg.init_optical_depth)
+            est = measure_water(scene.points, views, targets, scene.sightings, cfg.init_optical_depth)
             if est is not None:
                 self.estimate = est.to_dict()
                 init = {"init_beta": est.beta_D, "init_beta_b": est.beta_B, "init_binf": est.B_inf}

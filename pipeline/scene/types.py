@@ -52,6 +52,15 @@ class View:
     def center(self) -> np.ndarray:  # [3] camera centre in world coordinates
         return -self.R.T @ self.t
 
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World points [N, 3] → (u, v, z) [N] each: pixel coordinates (pixel-centre convention) and camera z.
+        Points with z ≤ 0 get u = v = NaN."""
+        cam = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ self.R.T + self.t
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zs = np.where(z > 1e-6, z, np.nan)
+            return self.camera.fx * cam[:, 0] / zs + self.camera.cx, self.camera.fy * cam[:, 1] / zs + self.camera.cy, z
+
     @property
     def viewmat(self) -> np.ndarray:  # [4, 4] world -> camera
         m = np.eye(4)
