@@ -46,6 +46,7 @@ from pydantic import BaseModel, Field, ValidationError
 from pipeline.stages import atomic_write_text
 
 from .manifest import Manifest
+from .options import JobOptionsIn
 
 log = logging.getLogger(__name__)
 
@@ -69,16 +70,8 @@ class SurveyNotFound(LookupError):
     pass
 
 
-class SurveyOptions(BaseModel):
-    """The job options a survey's jobs get (the pipeline's JobOptions minus the source)."""
-
-    model_config = {"extra": "forbid"}
-    preset: str = "fast"
-    mode: str = "auto"
-    max_width: int = Field(400, ge=32, le=16384)
-    metric_scale: float | None = Field(None, gt=0)
-    iterations: int | None = Field(None, ge=1)
-    seed: int = 0
+class SurveyOptions(JobOptionsIn):
+    """The job options a survey's jobs get, checked when the survey is registered."""
 
 
 class Survey(BaseModel):

@@ -171,6 +171,21 @@ def test_surveys_registration(api) -> None:
     assert_error(api.get(f"/v1/surveys/{sid}", headers=h), 404, "survey_not_found")
 
 
+@pytest.mark.parametrize("options, status, code, message", [
+    ({"mode": "nerf"}, 422, "invalid_request", "unknown mode 'nerf'"),
+    ({"preset": "bogus"}, 422, "invalid_request", "unknown preset 'bogus'"),
+    ({"seed": -1}, 422, "invalid_request", "seed"),
+    ({"iterations": 10**9}, 422, "invalid_options", "iterations: at most 100000"),
+])
+def test_survey_options_are_checked_when_registered(api, options, status, code, message) -> None:
+    root = api.settings.survey_roots[0]
+    (root / "reef").mkdir()
+    body = assert_error(api.post("/v1/surveys", json={"path": str(root / "reef"), "interval_s": 60,
+                                                      "options": options}, headers=auth("alice")), status, code)
+    assert message in body["error"]["message"]
+    assert api.get("/v1/surveys", headers=auth("alice")).json()["surveys"] == []
+
+
 def test_artifacts_listing_range_and_bundle(api, good_zip) -> None:
     import hashlib
     import io

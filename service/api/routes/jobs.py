@@ -100,8 +100,8 @@ async def create_job(
         except ValidationError as e:
             msg = "; ".join(f"{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors())
             raise UploadError(422, "invalid_options", msg) from None
-        if options.iterations is not None and options.iterations > settings.max_iterations:
-            raise UploadError(422, "invalid_options", f"iterations: at most {settings.max_iterations}")
+        if (why := options.over_limit(settings.max_iterations)) is not None:
+            raise UploadError(422, "invalid_options", why)
         opts = {**options.model_dump(), "source": str(up.path)}
         async with services.ingest_slots:  # type: ignore[attr-defined]
             result, seconds = await anyio.to_thread.run_sync(_run_ingest, settings, job_dir, up.path, opts)
