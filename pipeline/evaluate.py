@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .ground_truth import FAR_DEPTH_M
 from .lpips import LPIPSSetting, lpips_from_env, mean_lpips
 from .metrics import coefficient_error, mean_ssim, pooled_psnr, scale_aligned_depth_error
 from .restore import TrainedModel, ViewOutputs, render_outputs
@@ -38,7 +39,6 @@ log = logging.getLogger(__name__)
 
 TRUE_CAMERA_DIR = "evaluate/true_camera"  # renders from the true cameras (ground-truth jobs), under the job
 ALPHA_VALID = 0.5  # pixels the model covers at least this much count for the depth error
-FAR_DEPTH_M = 999.0  # the generator writes 1000 m where a ray hits nothing
 
 
 @dataclass
@@ -139,6 +139,20 @@ def _coefficients(medium: dict, truth: dict, metres_per_unit: float) -> dict[str
     }
 
 
+def seen_scores(names: Sequence[str], rendered: Sequence[Rendered], clean: Sequence[np.ndarray],
+                photos: Sequence[np.ndarray], seen: Sequence[np.ndarray]) -> dict[str, Any]:
+    """Restored J and the photos against the clean images over only the pixels some training view saw
+    (``GroundTruth.seen_by``), pooled and per view, with the share of pixels kept."""
+    restored = [(r.out.J, c) for r, c in zip(rendered, clean, strict=True)]
+    per_view = [{"name": n, "fraction": float(m.mean()), "restored_psnr": pooled_psnr([pair], [m])}
+                for n, pair, m in zip(names, restored, seen, strict=True)]
+    return {"restored_psnr": pooled_psnr(restored, seen),
+            "input_psnr": pooled_psnr(list(zip(photos, clean, strict=True)), seen),
+            "fraction": float(np.mean([m.mean() for m in seen])), "per_view": per_view,
+            "rule": "pixels whose true surface point a training view sees (in frame, depth within "
+                    "3 % of its true depth)"}
+
+
 def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str], downscale: int, gt_root: Path,
                         lp: LPIPSSetting, backend: str = "auto") -> dict[str, Any]:
     """Restored J, coefficients and depth against a generated scene's truth (see the module docstring)."""
@@ -155,6 +169,9 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
     if not names:
         raise ValueError(f"none of the held-out views {list(test_names)} is in the ground truth {gt_root}")
     views = [scaled_view(view_in_estimated_frame(true_views[n], sim), downscale) for n in names]
+    trained = sorted({v.name for v in job_scene.views} - set(test_names))
+    seen = [gt.seen_by(scaled_view(true_views[n], downscale), [true_views[t] for t in trained if t in true_views])
+            for n in names]
     rendered = render_timed(model, views, backend)
     save_renders(rendered, job / TRUE_CAMERA_DIR)
     clean = [gt.clean(v) for v in views]
@@ -166,6 +183,8 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
         "views": names,
         "restored": image_scores([(r.out.J, c) for r, c in zip(rendered, clean, strict=True)], lp),
         "input": image_scores(list(zip(photos, clean, strict=True)), lp),
+        # The same over the pixels some training view saw: unseen seabed can only be invented, not restored.
+        "seen": seen_scores(names, rendered, clean, photos, seen),
         # The model with water against the photos at the true cameras: close to the held-out score when the
         # cameras were carried over correctly (a check on the alignment, not a restoration score).
         "with_water": image_scores([(r.out.I, p) for r, p in zip(rendered, photos, strict=True)], lp),

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,9 @@ from .scene.loader import load_scene, load_view_image
 from .scene.types import Scene, View
 
 log = logging.getLogger(__name__)
+
+FAR_DEPTH_M = 999.0  # the generator writes 1000 m where a ray hits nothing
+SEEN_DEPTH_TOL = 0.03  # relative depth agreement for "the other view sees this surface point, not an occluder"
 
 
 class GroundTruthError(ValueError):
@@ -43,6 +47,36 @@ class GroundTruth:
         """True camera-space z (metres) of ``view.name`` at ``view.camera``'s size (area-averaged).  # [h, w]"""
         z = np.load(self.root / "depth" / f"{Path(view.name).stem}.npy")
         return resize_area_to(z, (view.camera.height, view.camera.width))
+
+    def seen_by(self, view: View, others: Sequence[View]) -> np.ndarray:
+        """Pixels of ``view`` (a true camera, any size) whose true surface point one of ``others`` (true
+        cameras at their own size) sees, inside its frame and not hidden: the projected depth agrees with
+        that view's true depth within ``SEEN_DEPTH_TOL``. Rays that hit nothing are never seen.  # [h, w] bool
+
+        Restoration scores over these pixels leave out seabed no training view showed, which no model can
+        restore (it can only invent it)."""
+        z = self.depth(view)
+        cam = view.camera
+        x = (np.arange(cam.width) + 0.5 - cam.cx) / cam.fx
+        y = (np.arange(cam.height) + 0.5 - cam.cy) / cam.fy
+        surface = z < FAR_DEPTH_M
+        zs = z[surface].astype(np.float64)
+        xc = np.stack([np.broadcast_to(x[None, :], z.shape)[surface] * zs,
+                       np.broadcast_to(y[:, None], z.shape)[surface] * zs, zs], axis=1)
+        world = (xc - view.t) @ view.R  # x_cam = R X + t  ->  X = R^T (x_cam - t)
+        hit = np.zeros(len(zs), dtype=bool)
+        for o in others:
+            z_map = self.depth(o)
+            u, v, zo = o.project(world)
+            with np.errstate(invalid="ignore"):
+                inside = (u >= 0) & (u < o.camera.width) & (v >= 0) & (v < o.camera.height)
+            iu = np.floor(u[inside]).astype(np.int64)
+            iv = np.floor(v[inside]).astype(np.int64)
+            ref = z_map[iv, iu].astype(np.float64)
+            hit[np.flatnonzero(inside)[np.abs(zo[inside] - ref) <= SEEN_DEPTH_TOL * ref]] = True
+        seen = np.zeros(z.shape, dtype=bool)
+        seen[surface] = hit
+        return seen
 
 
 def is_generated_scene(root: str | Path) -> bool:

@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -17,25 +18,34 @@ from .image_losses import psnr_from_mse
 from .image_losses import ssim as _ssim
 
 
-def pooled_mse(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> float:
-    """Mean squared error over every pixel of every (prediction, target) pair, each [H, W, 3] in [0, 1]."""
+def pooled_mse(pairs: Sequence[tuple[np.ndarray, np.ndarray]], masks: Sequence[np.ndarray] | None = None) -> float:
+    """Mean squared error over every pixel of every (prediction, target) pair, each [H, W, 3] in [0, 1]; with
+    ``masks`` ([H, W] bool per pair) only over the pixels they keep (NaN when they keep none)."""
     if not pairs:
         raise ValueError("no image pairs to score")
+    if masks is not None and len(masks) != len(pairs):
+        raise ValueError(f"{len(masks)} masks for {len(pairs)} image pairs")
     se, n = 0.0, 0
-    for pred, gt in pairs:
+    for k, (pred, gt) in enumerate(pairs):
         if pred.shape != gt.shape:
             raise ValueError(f"prediction {pred.shape} and target {gt.shape} differ")
         d = np.asarray(pred, np.float64) - np.asarray(gt, np.float64)
+        if masks is not None:
+            if masks[k].shape != d.shape[:2]:
+                raise ValueError(f"mask {masks[k].shape} does not fit image {d.shape}")
+            d = d[masks[k]]
         se += float((d * d).sum())
         n += d.size
-    return se / n
+    return se / n if n else math.nan
 
 
 psnr = psnr_from_mse  # PSNR in dB for images in [0, 1] (inf for a perfect match)
 
 
-def pooled_psnr(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> float:
-    return psnr(pooled_mse(pairs))
+def pooled_psnr(pairs: Sequence[tuple[np.ndarray, np.ndarray]], masks: Sequence[np.ndarray] | None = None) -> float:
+    """PSNR of the pooled MSE (over the masked pixels when ``masks`` are given; NaN when none are kept)."""
+    mse = pooled_mse(pairs, masks)
+    return math.nan if math.isnan(mse) else psnr(mse)
 
 
 def mean_ssim(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> float:

@@ -79,6 +79,12 @@ def _restoration(rest: dict | None) -> str:
             f"{fmt(rest['metres_per_unit'], 4)} m by aligning the cameras to the true ones (rotation error "
             f"{fmt(rest['alignment']['rot_err_deg_mean'], 3)}°).</p>"
             + table(["comparison", "PSNR (dB)", "SSIM", "LPIPS"], rows, 3))
+    seen = rest.get("seen")
+    if seen is not None:
+        html += (f"<p>Over the pixels some training view saw ({fmt(100 * seen['fraction'], 0)} % of them; "
+                 f"{escape(seen['rule'])}): restored J {fmt(seen['restored_psnr'])} dB, the photo "
+                 f"{fmt(seen['input_psnr'])} dB. Seabed no training view saw can only be invented, not "
+                 f"restored.</p>")
     coef = rest["coefficients"]
     if coef is not None:
         crow = []

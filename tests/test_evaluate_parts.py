@@ -8,9 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.evaluate import json_safe, speed_vs_error
-from pipeline.ground_truth import GroundTruthError, find_ground_truth
+from pipeline.config import SynthConfig
+from pipeline.evaluate import json_safe, scaled_view, speed_vs_error
+from pipeline.ground_truth import FAR_DEPTH_M, GroundTruthError, find_ground_truth, load_ground_truth
 from pipeline.scene.align import fit_similarity, umeyama, view_in_estimated_frame
+from pipeline.scene.synth import generate_scene
 from pipeline.scene.types import Camera, Scene, View
 from pipeline.train_hooks import curve_every, curve_subset
 
@@ -88,3 +90,38 @@ def test_true_cameras_carried_into_an_estimated_world_see_the_same_points():
         np.testing.assert_allclose(cam_est * s, cam_true, atol=1e-9)  # same rays; depth in estimated units
     s2, _, _ = umeyama(np.stack([v.center for v in est_views]), np.stack([v.center for v in true_views]))
     assert s2 == pytest.approx(s, rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def small_truth(tmp_path_factory):
+    root = tmp_path_factory.mktemp("gt")
+    generate_scene(SynthConfig(views=8, width=80, height=60, preset="medium", seed=0), root)
+    return load_ground_truth(root)
+
+
+def test_a_view_sees_its_own_surface_and_nothing_else(small_truth):
+    gt = small_truth
+    v = gt.scene.views[3]
+    surface = gt.depth(v) < FAR_DEPTH_M
+    own = gt.seen_by(v, [v])
+    assert surface.any() and not (own & ~surface).any()
+    assert own[surface].mean() > 0.99  # pixel centres project back to themselves at their own depth
+    assert not gt.seen_by(v, []).any()
+    # At the training resolution (downscale 2) the same surface is seen from the full-size view.
+    assert gt.seen_by(scaled_view(v, 2), [v])[gt.depth(scaled_view(v, 2)) < FAR_DEPTH_M].mean() > 0.97
+
+
+def test_seen_by_is_a_union_over_views_and_checks_occlusion(small_truth):
+    gt = small_truth
+    v, others = gt.scene.views[0], gt.scene.views[1:]
+    each = [gt.seen_by(v, [o]) for o in others]
+    union = gt.seen_by(v, others)
+    np.testing.assert_array_equal(union, np.logical_or.reduce(each))
+    assert 0.2 < union.mean() < 1.0  # neighbours overlap frame 0 but do not cover all of it
+    # The same view moved 1 m back along its axis: every surface point still projects inside its frame, but at
+    # 1 m more than its depth map says, so the depth test (a hidden point) must refuse them all.
+    o = gt.scene.views[3]
+    moved = View(o.name, o.camera, o.R, o.t + np.array([0.0, 0.0, 1.0]), o.image_path)
+    u, w, _ = moved.project(np.array([o.center + o.R[2] * 3.0]))
+    assert 0 <= u[0] < o.camera.width and 0 <= w[0] < o.camera.height
+    assert gt.seen_by(o, [o]).mean() > 0.5 and not gt.seen_by(o, [moved]).any()

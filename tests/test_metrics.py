@@ -23,6 +23,24 @@ def test_pooled_psnr_pools_pixels_not_views() -> None:
         pooled_mse([(a, c)])
 
 
+def test_masked_pooled_psnr_scores_only_the_kept_pixels() -> None:
+    a = np.zeros((2, 2, 3))
+    b = np.zeros((2, 2, 3))
+    b[0, 0] = 0.5  # one bad pixel
+    keep = np.ones((2, 2), bool)
+    keep[0, 0] = False
+    assert pooled_psnr([(a, b)], [keep]) == math.inf  # the bad pixel is left out
+    only_bad = ~keep
+    assert pooled_mse([(a, b)], [only_bad]) == pytest.approx(0.25)
+    # two views: 1 kept pixel (error 0.25) + 4 kept perfect pixels → 0.25 * 3 / 15
+    assert pooled_mse([(a, b), (a, a)], [only_bad, np.ones((2, 2), bool)]) == pytest.approx(0.05)
+    assert math.isnan(pooled_psnr([(a, b)], [np.zeros((2, 2), bool)]))  # nothing kept: NaN, not a score
+    with pytest.raises(ValueError, match="does not fit"):
+        pooled_mse([(a, b)], [np.ones((3, 2), bool)])
+    with pytest.raises(ValueError, match="masks for"):
+        pooled_mse([(a, b)], [])
+
+
 def test_ssim_identity_and_degradation() -> None:
     rng = np.random.default_rng(0)
     img = rng.random((32, 32, 3)).astype(np.float32)

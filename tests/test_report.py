@@ -60,6 +60,10 @@ def test_report_json_follows_its_schema_and_holds_real_numbers(job, record_prope
     # The model with water, rendered from the true cameras, must look like the photos about as well as it does
     # from its own cameras: the check that the true cameras were carried into the model's world correctly.
     assert abs(rest["with_water"]["psnr"] - t["psnr"]) < 3.0
+    seen = rest["seen"]  # restoration over the pixels some training view saw
+    record_property("restored_seen_psnr", seen["restored_psnr"])
+    assert 0.3 < seen["fraction"] <= 1.0 and [p["name"] for p in seen["per_view"]] == rest["views"]
+    assert 5.0 < seen["restored_psnr"] < 50.0 and math.isfinite(seen["input_psnr"])
     assert rest["alignment"]["rot_err_deg_mean"] < 2.0 and 0 < rest["metres_per_unit"]
     coef = rest["coefficients"]
     record_property("beta_D_rel_error", coef["beta_D"]["rel_error"])
