@@ -113,6 +113,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if rest:
         print(f"      restored J against the true clean images (held-out views): PSNR {_db(rest['restored']['psnr'])}, "
               f"SSIM {rest['restored']['ssim']:.3f} (the photos themselves: {_db(rest['input']['psnr'])})")
+        if rest.get("seen"):
+            seen = rest["seen"]
+            print(f"      over the {100 * seen['fraction']:.0f} % of pixels a training view saw: restored J "
+                  f"{_db(seen['restored_psnr'])} (the photos: {_db(seen['input_psnr'])})")
     if coef:
         # SfM scenes have no metric scale: one scene unit is errs['scale'] metres (similarity to the truth).
         metric = [b / errs["scale"] for b in coef["beta_D"]]

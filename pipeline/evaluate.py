@@ -283,7 +283,8 @@ def _log_summary(res: dict) -> None:
     r = res["restoration"]
     log.info("held-out PSNR %.2f dB SSIM %.3f over %d views%s", t["psnr"], t["ssim"], t["n_views"],
              "" if r is None else f"; restored J vs truth PSNR {r['restored']['psnr']:.2f} dB "
-             f"(photo vs truth {r['input']['psnr']:.2f} dB)")
+             f"(photo vs truth {r['input']['psnr']:.2f} dB; over the pixels a training view saw "
+             f"{r['seen']['restored_psnr']:.2f} dB)")
     if not math.isfinite(t["psnr"]):
         log.warning("held-out PSNR is not finite (%s): the renders match the photos exactly?", t["psnr"])
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,22 @@ def scene(tmp_path_factory) -> Path:
 
 def _last_json(text: str) -> dict:
     return json.loads(text.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_demo_prints_real_numbers_and_where_the_report_is(tmp_path, capsys):
+    """`make demo`'s command, short: what it prints must come from the job (a broken line breaks the demo)."""
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--iterations", "60"]) == 0
+    out = capsys.readouterr().out
+    report = re.search(r"report: (\S+report\.html)", out)
+    assert report and Path(report.group(1)).is_file()
+    restored = re.search(r"restored J against the true clean images \(held-out views\): PSNR ([\d.]+) dB", out)
+    photos = re.search(r"the photos themselves: ([\d.]+) dB", out)
+    assert restored and photos and 8.0 < float(restored.group(1)) < 40.0 and 8.0 < float(photos.group(1)) < 25.0
+    seen = re.search(r"over the (\d+) % of pixels a training view saw: restored J ([\d.]+) dB", out)
+    assert seen and 30 <= int(seen.group(1)) <= 100 and 8.0 < float(seen.group(2)) < 40.0
+    beta = re.findall(r"([RGB]) ([\d.]+) \(true ([\d.]+)\)", out)
+    assert [c for c, _, _ in beta] == ["R", "G", "B"] and all(float(b) > 0 for _, b, _ in beta)
 
 
 @pytest.mark.slow
