@@ -6,7 +6,7 @@ a worker would fail on it; a survey registered with a bad option would otherwise
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 
 def known_presets() -> list[str]:
@@ -34,18 +34,12 @@ class JobOptionsIn(BaseModel):
     iterations: int | None = Field(None, ge=1, description="override the preset's iteration count")
     seed: int = Field(0, ge=0, le=2**31 - 1)
 
-    @field_validator("preset")
+    @field_validator("preset", "mode")
     @classmethod
-    def _known_preset(cls, v: str) -> str:
-        if v not in known_presets():
-            raise ValueError(f"unknown preset {v!r}; choose from {known_presets()}")
-        return v
-
-    @field_validator("mode")
-    @classmethod
-    def _known_mode(cls, v: str) -> str:
-        if v not in known_modes():
-            raise ValueError(f"unknown mode {v!r}; choose from {known_modes()}")
+    def _known(cls, v: str, info: ValidationInfo) -> str:
+        choices = known_presets() if info.field_name == "preset" else known_modes()
+        if v not in choices:
+            raise ValueError(f"unknown {info.field_name} {v!r}; choose from {choices}")
         return v
 
     def over_limit(self, max_iterations: int) -> str | None:

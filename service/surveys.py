@@ -382,11 +382,17 @@ class SurveyRegistry:
     """API-registered surveys live in ``<data>/surveys/<id>/survey.json``; config-file surveys are read from
     ``surveys_file`` each time; both keep their scan state in ``<data>/surveys/<id>/state.json``."""
 
-    def __init__(self, surveys_dir: Path, roots: list[Path], surveys_file: Path | None, min_interval_s: float):
+    def __init__(self, surveys_dir: Path, roots: list[Path], surveys_file: Path | None, min_interval_s: float,
+                 max_iterations: int | None = None):
         self.dir = Path(surveys_dir)
         self.roots = roots
         self.surveys_file = surveys_file
         self.min_interval_s = min_interval_s
+        self.max_iterations = max_iterations  # the server's limit on a job's iterations (None: none)
+
+    def _check_options(self, options: SurveyOptions) -> None:
+        if self.max_iterations is not None and (why := options.over_limit(self.max_iterations)) is not None:
+            raise SurveyError("invalid_options", why)
 
     def _folder(self, sid: str) -> Path:
         if not (sid.startswith("v") and sid[1:].isalnum() and len(sid) == 16):
@@ -395,6 +401,7 @@ class SurveyRegistry:
 
     def register(self, owner: str, path: str, interval_s: float, name: str | None,
                  options: SurveyOptions) -> Survey:
+        self._check_options(options)
         real = resolve_under_roots(path, self.roots)
         if interval_s < self.min_interval_s:
             raise SurveyError("interval_too_short", f"interval_s must be at least {self.min_interval_s}")
@@ -431,9 +438,10 @@ class SurveyRegistry:
                 real = resolve_under_roots(str(entry["path"]), self.roots)
                 interval = max(float(entry.get("interval_s", 3600)), self.min_interval_s)
                 owner = str(entry["owner"])
+                options = SurveyOptions(**entry.get("options", {}))
+                self._check_options(options)
                 out.append(Survey(id=survey_id(owner, str(real)), owner=owner, name=str(entry.get("name", real.name)),
-                                  path=str(real), interval_s=interval,
-                                  options=SurveyOptions(**entry.get("options", {})), origin="config"))
+                                  path=str(real), interval_s=interval, options=options, origin="config"))
             except (KeyError, TypeError, ValueError, SurveyError, ValidationError) as e:
                 log.error("surveys file %s, entry %d skipped: %s", self.surveys_file, i, e)
         return out

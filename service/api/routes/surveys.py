@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response
 
-from service.api.deps import OwnerDep, ServicesDep, SettingsDep, SurveysDep
+from service.api.deps import OwnerDep, ServicesDep, SurveysDep
 from service.api.errors import api_error
 from service.api.schemas.requests import SurveyCreate
 from service.api.schemas.responses import ErrorOut, ScanQueued, SubmittedSetOut, SurveyList, SurveyOut
@@ -33,9 +33,7 @@ def _get(registry: SurveyRegistry, survey_id: str, owner: str) -> Survey:
 
 
 @router.post("", status_code=201, response_model=SurveyOut, responses=ERRORS, summary="Register a survey folder")
-def create_survey(body: SurveyCreate, owner: OwnerDep, registry: SurveysDep, settings: SettingsDep) -> SurveyOut:
-    if (why := body.options.over_limit(settings.max_iterations)) is not None:
-        raise api_error(422, "invalid_options", why)
+def create_survey(body: SurveyCreate, owner: OwnerDep, registry: SurveysDep) -> SurveyOut:
     try:
         s = registry.register(owner, body.path, body.interval_s, body.name, body.options)
     except SurveyError as e:
