@@ -12,9 +12,19 @@ from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
+import pytest
 from svc_helpers import small_jpegs
 
-from service.surveys import ImageFile, ScanConfig, SurveyOptions, SurveyRegistry, read_exif_time, scan, with_exif_times
+from service.surveys import (
+    ImageFile,
+    ScanConfig,
+    SurveyError,
+    SurveyOptions,
+    SurveyRegistry,
+    read_exif_time,
+    scan,
+    with_exif_times,
+)
 
 
 def _registry(rt) -> SurveyRegistry:
@@ -217,3 +227,17 @@ def test_read_exif_time_formats_and_damaged_headers(tmp_path: Path) -> None:
     (tmp_path / "cut.jpg").write_bytes((tmp_path / "x.jpg").read_bytes()[:40])  # ends inside the Exif block
     (tmp_path / "notes.jpg").write_text("not an image")
     assert [read_exif_time(tmp_path / n) for n in ("plain.jpg", "cut.jpg", "notes.jpg")] == [None, None, None]
+
+
+def test_surveys_file_entries_with_bad_options_are_skipped(tmp_path: Path) -> None:
+    root = tmp_path / "roots"
+    for name in ("ok", "too-long", "bad-mode"):
+        (root / name).mkdir(parents=True)
+    conf = tmp_path / "surveys.toml"
+    entries = [(root / "ok", ""), (root / "too-long", "iterations = 500"), (root / "bad-mode", 'mode = "nerf"')]
+    conf.write_text("".join(f'[[survey]]\npath = "{p}"\nowner = "a"\n[survey.options]\n{o}\n' for p, o in entries))
+    reg = SurveyRegistry(tmp_path / "surveys", [root], conf, 1.0, max_iterations=100)
+    assert [s.name for s in reg.from_config()] == ["ok"]
+    with pytest.raises(SurveyError, match="iterations: at most 100") as e:
+        reg.register("a", str(root / "too-long"), 60, None, SurveyOptions(iterations=500))
+    assert e.value.code == "invalid_options" and reg.all() == reg.from_config()
