@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .ground_truth import FAR_DEPTH_M
+from .ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from .lpips import LPIPSSetting, lpips_from_env, mean_lpips
 from .metrics import coefficient_error, mean_ssim, pooled_psnr, scale_aligned_depth_error
 from .restore import TrainedModel, ViewOutputs, render_outputs
@@ -139,18 +139,16 @@ def _coefficients(medium: dict, truth: dict, metres_per_unit: float) -> dict[str
     }
 
 
-def seen_scores(names: Sequence[str], rendered: Sequence[Rendered], clean: Sequence[np.ndarray],
-                photos: Sequence[np.ndarray], seen: Sequence[np.ndarray]) -> dict[str, Any]:
-    """Restored J and the photos against the clean images over only the pixels some training view saw
-    (``GroundTruth.seen_by``), pooled and per view, with the share of pixels kept."""
-    restored = [(r.out.J, c) for r, c in zip(rendered, clean, strict=True)]
+def seen_scores(names: Sequence[str], restored: list[tuple[np.ndarray, np.ndarray]],
+                photos: list[tuple[np.ndarray, np.ndarray]], seen: Sequence[np.ndarray]) -> dict[str, Any]:
+    """Restored J and the photos against the clean images (``(image, clean)`` pairs) over only the pixels some
+    training view saw (``GroundTruth.seen_by``), pooled and per view, with the share of pixels kept."""
     per_view = [{"name": n, "fraction": float(m.mean()), "restored_psnr": pooled_psnr([pair], [m])}
                 for n, pair, m in zip(names, restored, seen, strict=True)]
-    return {"restored_psnr": pooled_psnr(restored, seen),
-            "input_psnr": pooled_psnr(list(zip(photos, clean, strict=True)), seen),
+    return {"restored_psnr": pooled_psnr(restored, seen), "input_psnr": pooled_psnr(photos, seen),
             "fraction": float(np.mean([m.mean() for m in seen])), "per_view": per_view,
-            "rule": "pixels whose true surface point a training view sees (in frame, depth within "
-                    "3 % of its true depth)"}
+            "rule": f"pixels whose true surface point a training view sees (in frame, depth within "
+                    f"{100 * SEEN_DEPTH_TOL:g} % of its true depth)"}
 
 
 def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str], downscale: int, gt_root: Path,
@@ -169,22 +167,23 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
     if not names:
         raise ValueError(f"none of the held-out views {list(test_names)} is in the ground truth {gt_root}")
     views = [scaled_view(view_in_estimated_frame(true_views[n], sim), downscale) for n in names]
-    trained = sorted({v.name for v in job_scene.views} - set(test_names))
-    seen = [gt.seen_by(scaled_view(true_views[n], downscale), [true_views[t] for t in trained if t in true_views])
-            for n in names]
+    trained = sorted(({v.name for v in job_scene.views} - set(test_names)) & true_views.keys())
+    seen = gt.seen_by([scaled_view(true_views[n], downscale) for n in names], [true_views[t] for t in trained])
     rendered = render_timed(model, views, backend)
     save_renders(rendered, job / TRUE_CAMERA_DIR)
     clean = [gt.clean(v) for v in views]
     photos = [load_view_image_from(gt_root / "images" / v.name, v) for v in views]
     train = json.loads((job / "train" / "train.json").read_text())
+    restored = [(r.out.J, c) for r, c in zip(rendered, clean, strict=True)]
+    unrestored = list(zip(photos, clean, strict=True))
     return {
         "ground_truth": str(gt_root),
         "water_preset": gt.water.get("preset"),
         "views": names,
-        "restored": image_scores([(r.out.J, c) for r, c in zip(rendered, clean, strict=True)], lp),
-        "input": image_scores(list(zip(photos, clean, strict=True)), lp),
+        "restored": image_scores(restored, lp),
+        "input": image_scores(unrestored, lp),
         # The same over the pixels some training view saw: unseen seabed can only be invented, not restored.
-        "seen": seen_scores(names, rendered, clean, photos, seen),
+        "seen": seen_scores(names, restored, unrestored, seen),
         # The model with water against the photos at the true cameras: close to the held-out score when the
         # cameras were carried over correctly (a check on the alignment, not a restoration score).
         "with_water": image_scores([(r.out.I, p) for r, p in zip(rendered, photos, strict=True)], lp),

@@ -48,35 +48,40 @@ class GroundTruth:
         z = np.load(self.root / "depth" / f"{Path(view.name).stem}.npy")
         return resize_area_to(z, (view.camera.height, view.camera.width))
 
-    def seen_by(self, view: View, others: Sequence[View]) -> np.ndarray:
-        """Pixels of ``view`` (a true camera, any size) whose true surface point one of ``others`` (true
-        cameras at their own size) sees, inside its frame and not hidden: the projected depth agrees with
-        that view's true depth within ``SEEN_DEPTH_TOL``. Rays that hit nothing are never seen.  # [h, w] bool
+    def seen_by(self, views: Sequence[View], others: Sequence[View]) -> list[np.ndarray]:
+        """For each of ``views`` (true cameras, any size): the pixels whose true surface point one of ``others``
+        (true cameras at their own size) sees, inside its frame and not hidden: the projected depth agrees with
+        that view's true depth within ``SEEN_DEPTH_TOL``. Rays that hit nothing are never seen.  # [h, w] bool each
 
         Restoration scores over these pixels leave out seabed no training view showed, which no model can
-        restore (it can only invent it)."""
-        z = self.depth(view)
-        cam = view.camera
-        x = (np.arange(cam.width) + 0.5 - cam.cx) / cam.fx
-        y = (np.arange(cam.height) + 0.5 - cam.cy) / cam.fy
-        surface = z < FAR_DEPTH_M
-        zs = z[surface].astype(np.float64)
-        xc = np.stack([np.broadcast_to(x[None, :], z.shape)[surface] * zs,
-                       np.broadcast_to(y[:, None], z.shape)[surface] * zs, zs], axis=1)
-        world = (xc - view.t) @ view.R  # x_cam = R X + t  ->  X = R^T (x_cam - t)
-        hit = np.zeros(len(zs), dtype=bool)
+        restore (it can only invent it). Each of ``others``' depth maps is read once."""
+        surfaces, worlds = [], []
+        for view in views:
+            z = self.depth(view)
+            cam = view.camera
+            x = (np.arange(cam.width) + 0.5 - cam.cx) / cam.fx
+            y = (np.arange(cam.height) + 0.5 - cam.cy) / cam.fy
+            surface = z < FAR_DEPTH_M
+            zs = z[surface].astype(np.float64)
+            xc = np.stack([np.broadcast_to(x[None, :], z.shape)[surface] * zs,
+                           np.broadcast_to(y[:, None], z.shape)[surface] * zs, zs], axis=1)
+            surfaces.append(surface)
+            worlds.append((xc - view.t) @ view.R)  # x_cam = R X + t  ->  X = R^T (x_cam - t)
+        hits = [np.zeros(len(w), dtype=bool) for w in worlds]
         for o in others:
             z_map = self.depth(o)
-            u, v, zo = o.project(world)
-            with np.errstate(invalid="ignore"):
-                inside = (u >= 0) & (u < o.camera.width) & (v >= 0) & (v < o.camera.height)
-            iu = np.floor(u[inside]).astype(np.int64)
-            iv = np.floor(v[inside]).astype(np.int64)
-            ref = z_map[iv, iu].astype(np.float64)
-            hit[np.flatnonzero(inside)[np.abs(zo[inside] - ref) <= SEEN_DEPTH_TOL * ref]] = True
-        seen = np.zeros(z.shape, dtype=bool)
-        seen[surface] = hit
-        return seen
+            for world, hit in zip(worlds, hits, strict=True):
+                u, v, zo = o.project(world)
+                with np.errstate(invalid="ignore"):
+                    inside = (u >= 0) & (u < o.camera.width) & (v >= 0) & (v < o.camera.height)
+                ref = z_map[np.floor(v[inside]).astype(np.int64), np.floor(u[inside]).astype(np.int64)]
+                hit[np.flatnonzero(inside)[np.abs(zo[inside] - ref) <= SEEN_DEPTH_TOL * ref]] = True
+        out = []
+        for surface, hit in zip(surfaces, hits, strict=True):
+            seen = np.zeros(surface.shape, dtype=bool)
+            seen[surface] = hit
+            out.append(seen)
+        return out
 
 
 def is_generated_scene(root: str | Path) -> bool:

@@ -103,19 +103,19 @@ def test_a_view_sees_its_own_surface_and_nothing_else(small_truth):
     gt = small_truth
     v = gt.scene.views[3]
     surface = gt.depth(v) < FAR_DEPTH_M
-    own = gt.seen_by(v, [v])
+    (own,) = gt.seen_by([v], [v])
     assert surface.any() and not (own & ~surface).any()
     assert own[surface].mean() > 0.99  # pixel centres project back to themselves at their own depth
-    assert not gt.seen_by(v, []).any()
+    assert not gt.seen_by([v], [])[0].any()
     # At the training resolution (downscale 2) the same surface is seen from the full-size view.
-    assert gt.seen_by(scaled_view(v, 2), [v])[gt.depth(scaled_view(v, 2)) < FAR_DEPTH_M].mean() > 0.97
+    assert gt.seen_by([scaled_view(v, 2)], [v])[0][gt.depth(scaled_view(v, 2)) < FAR_DEPTH_M].mean() > 0.97
 
 
 def test_seen_by_is_a_union_over_views_and_checks_occlusion(small_truth):
     gt = small_truth
     v, others = gt.scene.views[0], gt.scene.views[1:]
-    each = [gt.seen_by(v, [o]) for o in others]
-    union = gt.seen_by(v, others)
+    each = [gt.seen_by([v], [o])[0] for o in others]
+    (union,) = gt.seen_by([v], others)
     np.testing.assert_array_equal(union, np.logical_or.reduce(each))
     assert 0.2 < union.mean() < 1.0  # neighbours overlap frame 0 but do not cover all of it
     # The same view moved 1 m back along its axis: every surface point still projects inside its frame, but at
@@ -124,4 +124,4 @@ def test_seen_by_is_a_union_over_views_and_checks_occlusion(small_truth):
     moved = View(o.name, o.camera, o.R, o.t + np.array([0.0, 0.0, 1.0]), o.image_path)
     u, w, _ = moved.project(np.array([o.center + o.R[2] * 3.0]))
     assert 0 <= u[0] < o.camera.width and 0 <= w[0] < o.camera.height
-    assert gt.seen_by(o, [o]).mean() > 0.5 and not gt.seen_by(o, [moved]).any()
+    assert gt.seen_by([o], [o])[0].mean() > 0.5 and not gt.seen_by([o], [moved])[0].any()
