@@ -32,7 +32,7 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 VARIED_LOSSES = ("ab", "wat", "ms")  # the terms the paper's loss rows switch
-FIXED_LOSSES = ("edge", "floater")  # on in every medium row
+FIXED_LOSSES = ("edge", "floater", "surface")  # on in every medium row
 ALL_LOSSES = VARIED_LOSSES + FIXED_LOSSES
 
 

@@ -127,7 +127,7 @@ class MediumConfig:
     beta_w: float = 1.0  # β(w) in L_wat (controller: clear 0.8, turbid 1.2)
     water_factor: float = 1.0  # T in eq. 5
     init_optical_depth: tuple[float, float, float] = (0.6, 0.3, 0.25)  # β·(median scene depth) at the start
-    losses: tuple[str, ...] = ("ab", "wat", "edge", "ms", "floater")  # enabled terms beyond L_basic (ablation)
+    losses: tuple[str, ...] = ("ab", "wat", "edge", "ms", "floater", "surface")  # enabled terms beyond L_basic
     loss_weights: dict[str, float] = field(default_factory=dict)  # overrides of pipeline.losses.LossWeights
     max_sh_degree: int = 1  # low-order SH keeps J view-consistent, so range-dependent colour goes to the water
     colour_prior: Literal["tracks", "grey_world"] = "tracks"  # L_attenuation: anchor β_D to the multi-view

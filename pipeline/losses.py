@@ -130,6 +130,19 @@ def multiscale_loss(render: Tensor, target: Tensor, lam_ms: float = 1.0, scales:
     return total + lam_ms / len(scales) * acc
 
 
+def surface_loss(alpha: Tensor, pixels: Tensor) -> Tensor:
+    """Mean 1 − α at the pixels where the view saw sparse points. [N,1,H,W], flat pixel indices [K] → []
+
+    Not in the paper. A matched feature is a surface by construction, so the Gaussians must cover it. This is
+    what holds the scene against the medium's shortcut: an uncovered pixel shows the veiling light B∞, which in
+    murky water is nearly the photo, so the photometric loss alone barely resists losing the seabed
+    (docs/DECISIONS.md, "The water must not eat the scene"). It is zero once the points are covered.
+    """
+    if pixels.numel() == 0:
+        return alpha.new_zeros(())
+    return (1.0 - alpha.reshape(-1)[pixels]).mean()
+
+
 def floater_loss(alpha: Tensor) -> Tensor:
     """Mean α(1 − α) of rendered alpha: semi-transparent haze made of Gaussians costs. [N,1,H,W] → []"""
     return (alpha * (1 - alpha)).mean()
@@ -145,6 +158,7 @@ class LossWeights:
     w_edge: float = 0.01  # w4
     w_ms: float = 0.1  # w5
     w_floater: float = 0.005  # not in the paper: keeps the water column free of floaters
+    w_surface: float = 0.05  # not in the paper: the sparse points' pixels stay covered (surface_loss)
     mu: float = 0.1  # complementarity weight inside L_ab
     anchor: float = 4.0  # weight of the measured-water anchors inside L_attenuation and L_scattering (1 → 4:
     #                      restored J 20.4 → 21.2 dB on the SfM demo scene, β_D within 1–12 % of the truth)
@@ -158,7 +172,7 @@ def loss_terms(
     render: Tensor, target: Tensor, J: Tensor, A: Tensor, B: Tensor, B_frac: Tensor, D: Tensor, alpha: Tensor,
     depth_scale: float, w: LossWeights, alpha_w: float = 1.0, beta_w: float = 1.0,
     enabled: frozenset[str] = frozenset({"ab", "wat", "edge", "ms", "floater"}),
-    anchor: dict[str, tuple[Tensor, Tensor]] | None = None,
+    anchor: dict[str, tuple[Tensor, Tensor]] | None = None, surface: Tensor | None = None,
 ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
     """Eq. 13's terms: (raw terms for logging, weighted terms whose sum is L_total).
 
@@ -182,8 +196,10 @@ def loss_terms(
         raw["ms"] = multiscale_loss(render, target, w.lam_ms)
     if "floater" in enabled:
         raw["floater"] = floater_loss(alpha)
+    if "surface" in enabled and surface is not None:
+        raw["surface"] = surface_loss(alpha, surface)
     weights = {"basic": w.w_basic, "ab": w.w_ab, "wat": w.w_wat, "edge": w.w_edge, "ms": w.w_ms,
-               "floater": w.w_floater}
+               "floater": w.w_floater, "surface": w.w_surface}
     weighted = {k: weights[k] * raw[k] for k in weights if k == "basic" or (k in enabled and k in raw)}
     return raw, weighted
 

@@ -59,6 +59,8 @@ __all__ = [
 ]
 
 CHECKPOINT_NAME = "latest.pt"
+RESET_RECOVERY_REFINES = 2  # medium modes: the last opacity reset is at least this many refinements before the
+#                             medium starts (docs/DECISIONS.md, "The water must not eat the scene")
 STATE_VERSION = 1
 # Config fields that do not change what is trained: a checkpoint differing only in these still resumes.
 _NON_SEMANTIC = {"log_every", "checkpoint_every", "eval_every"}
@@ -122,6 +124,9 @@ class Trainer:
             self.medium = MediumTerm(cfg.mode, cfg.medium, scene, self.views, self.targets, cfg.iterations,
                                      self.device)
             self.max_sh_degree = min(cfg.sh_degree, cfg.medium.max_sh_degree)
+            # Opacity resets only while J alone is fitted, with time to recover before the medium starts: once
+            # the water is on, an uncovered pixel shows the veil, and a reset scene is not brought back.
+            self.densifier.stop_resets_at(self.medium.start - RESET_RECOVERY_REFINES * cfg.densify.refine_every)
         self.cameras = [view_tensors(v, self.device) for v in self.views]  # (viewmat [4,4], K [3,3])
         self.iteration = 0  # iterations completed
         self.elapsed_s = 0.0
@@ -275,13 +280,15 @@ def train(
     on_progress: ProgressFn | None = None,
     should_cancel: Callable[[], bool] | None = None,
     device: torch.device | str = "cpu",
+    hooks: Sequence[Hook] = (),
 ) -> TrainResult:
     """Train on ``scene.views`` with ``images`` (one [H, W, 3] float image in [0, 1] per view).
 
     With ``checkpoint_dir``: resumes from ``<dir>/latest.pt`` when it was written with the same config
     (else starts afresh, with a warning, and overwrites it); saves it every ``cfg.checkpoint_every``
     iterations, at the end, and before raising ``TrainingCancelled``. ``on_progress(iteration, total,
-    metrics)`` runs after every step, ``should_cancel()`` before every step. Held-out views
+    metrics)`` runs after every step, ``should_cancel()`` before every step; ``hooks`` run after every step
+    before the built-in ones (``pipeline.train_hooks``). Held-out views
     (``test_views``/``test_images``) are scored every ``cfg.eval_every`` iterations and at the end.
     """
     trainer = Trainer(scene, images, cfg, device=device)
@@ -294,7 +301,7 @@ def train(
         else:
             trainer.load_state_dict(saved)
             log.info("resumed from %s at iteration %d", ckpt, trainer.iteration)
-    hooks: list[Hook] = [log_hook(cfg.log_every)]
+    hooks = [*hooks, log_hook(cfg.log_every)]
     if test_views:
         views, targets = prepare_images(test_views, test_images, cfg.downscale, trainer.device)
         hooks.append(eval_hook(cfg.eval_every, views, targets))

@@ -97,3 +97,16 @@ def test_veil_bound_costs_only_backscatter_brighter_than_the_photo():
     assert float(L.scattering_prior(torch.full((1, 3, 4, 4), 0.2), photo, ones)) == 0.0
     assert float(L.scattering_prior(torch.full((1, 3, 4, 4), 0.5), photo, ones)) == pytest.approx(0.2)
     assert float(L.scattering_prior(torch.full((1, 3, 4, 4), 0.5), photo, ones * 0.5)) == 0.0
+
+
+def test_surface_loss_holds_the_sparse_points_covered():
+    alpha = torch.zeros(1, 1, 4, 5, requires_grad=True)
+    pix = torch.tensor([0, 7, 19])
+    loss = L.surface_loss(alpha, pix)
+    assert float(loss.detach()) == 1.0
+    loss.backward()
+    g = alpha.grad.reshape(-1)
+    assert torch.all(g[pix] < 0) and int((g != 0).sum()) == 3  # only the points' pixels are pushed, towards cover
+    covered = torch.ones(1, 1, 4, 5)
+    assert float(L.surface_loss(covered, pix)) == 0.0
+    assert float(L.surface_loss(covered, torch.zeros(0, dtype=torch.long))) == 0.0

@@ -86,3 +86,22 @@ def test_export_writes_every_view_and_matches_the_trainer(medium_scene, tmp_path
         expect = tr.predict(v).numpy()
         assert abs(I - expect).max() <= 0.5 / 255 + 1e-6  # the same model, only 8-bit rounding between them
         assert (tmp_path / "out" / "depth" / f"{stem}.npy").is_file()
+
+
+@pytest.mark.parametrize("preset", ["fast", "balanced", "paper"])
+def test_no_opacity_reset_near_or_after_the_medium_start(medium_scene, preset):
+    """The fast preset's reset fell on the iteration the medium switched on, and the veil then took the scene
+    (docs/DECISIONS.md, "The water must not eat the scene"): medium modes stop resetting two refinements
+    before the medium starts; 3dgs keeps the preset's resets."""
+    from pipeline.config import train_preset
+
+    scene, images = medium_scene
+    cfg = train_preset(preset)
+    cfg.mode, cfg.backend = "dualphys", "cpu"
+    tr = Trainer(scene, images, cfg)
+    until = tr.densifier.strategy.reset_until
+    assert 0 < until <= tr.medium.start - 2 * cfg.densify.refine_every
+    resets = [it for it in range(1, cfg.densify.refine_stop) if it % cfg.densify.reset_every == 0 and it < until]
+    assert all(it <= tr.medium.start - 2 * cfg.densify.refine_every for it in resets)
+    cfg.mode = "3dgs"
+    assert Trainer(scene, images, cfg).densifier.strategy.reset_until == 0

@@ -20,6 +20,7 @@ from torch import Tensor
 
 from ..config import MediumConfig
 from ..losses import LossWeights, basic_loss, loss_terms
+from ..quality import view_points
 from ..scene.types import Scene, View, ray_length_factor
 from .estimate import measure_water
 from .model import Medium, MediumOutput
@@ -43,6 +44,15 @@ def scene_depth_scale(scene: Scene, views: Sequence[View]) -> float:
         return float(np.median(z))
     centres = np.stack([v.center for v in views])
     return float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1))) or 1.0
+
+
+def surface_pixels(scene: Scene, view: View, device: torch.device) -> Tensor:
+    """Flat indices (y·W + x) of the distinct pixels where ``view`` saw sparse points, at its camera's size. [K]"""
+    xy = view_points(scene, view)
+    w, h = view.camera.width, view.camera.height
+    x = np.clip(np.floor(xy[:, 0]).astype(np.int64), 0, w - 1)
+    y = np.clip(np.floor(xy[:, 1]).astype(np.int64), 0, h - 1)
+    return torch.as_tensor(np.unique(y * w + x), dtype=torch.long, device=device)
 
 
 def _nchw(x: Tensor) -> Tensor:  # [H, W, C] → [1, C, H, W]
@@ -75,6 +85,7 @@ class MediumTerm:
         self.medium.water_factor.fill_(cfg.water_factor)
         self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
                     for v in views]  # per view [1, 1, H, W]
+        self.surface = [surface_pixels(scene, v, device) for v in views]  # per view: flat pixel indices [K]
         self.start = int(round(cfg.start_fraction * total_iterations))
         # Short runs scale the schedule: the paper's rates are for ~20k medium iterations.
         boost = max(1.0, cfg.lr_reference_iterations / max(1, total_iterations - self.start))
@@ -106,7 +117,7 @@ class MediumTerm:
         enabled = frozenset(self.cfg.losses)
         _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha),
                                  self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled,
-                                 anchor=self._anchor(out, D, _nchw(alpha)))
+                                 anchor=self._anchor(out, D, _nchw(alpha)), surface=self.surface[view_index])
         return weighted
 
     def _anchor(self, out: MediumOutput, D: Tensor, alpha: Tensor) -> dict[str, tuple[Tensor, Tensor]] | None:

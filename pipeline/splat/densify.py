@@ -52,6 +52,7 @@ def _make_strategy(cfg: DensifyConfig) -> Any:
     @dataclass
     class _Strategy(DefaultStrategy):
         max_gaussians: int = 0
+        reset_until: int = 0  # no opacity reset at or after this iteration (0 = no limit)
 
         def step_post_backward(  # type: ignore[override]
             self,
@@ -77,7 +78,7 @@ def _make_strategy(cfg: DensifyConfig) -> Any:
                 state["grad2d"].zero_()
                 state["count"].zero_()
                 event = DensifyEvent(step, int(n_dupli), int(n_split), int(n_prune))
-            if step % self.reset_every == 0 and step > 0:
+            if step % self.reset_every == 0 and step > 0 and (self.reset_until <= 0 or step < self.reset_until):
                 reset_opa(params=params, optimizers=optimizers, state=state, value=self.prune_opa * 2.0)
                 event = event or DensifyEvent(step)
                 event.opacity_reset = True
@@ -126,6 +127,13 @@ class Densifier:
         self.cfg = cfg
         self.strategy = _make_strategy(cfg)
         self.state: dict[str, Any] = self.strategy.initialize_state(scene_scale=float(scene_scale))
+
+    def stop_resets_at(self, iteration: int) -> None:
+        """No opacity reset at or after ``iteration``. A reset drops every Gaussian to near-transparent and relies
+        on the photometric loss to bring back the ones the scene needs; in a medium mode that loss no longer
+        does, because an uncovered pixel shows the water's veiling light, which in murky water is close to the
+        photo already (docs/DECISIONS.md, "The water must not eat the scene")."""
+        self.strategy.reset_until = int(iteration)
 
     def check(self, params: nn.ParameterDict, optimizers: dict[str, torch.optim.Optimizer]) -> None:
         """gsplat's sanity check (same keys, one param group each), as a ValueError."""

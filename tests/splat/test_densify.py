@@ -138,3 +138,15 @@ def test_state_dict_round_trip():
     assert other.state["scene_scale"] == 2.5
     assert torch.equal(other.state["grad2d"], dens.state["grad2d"])
     assert torch.equal(other.state["count"], torch.full((40,), 3.0))
+
+
+def test_no_opacity_reset_after_stop_resets_at():
+    """Medium modes stop resets before the medium starts (an uncovered pixel then shows the veil, and a reset
+    scene is not brought back: docs/DECISIONS.md)."""
+    params, a = toy_gaussians()
+    optimizers = optimizers_for(params)
+    dens = Densifier(DensifyConfig(refine_start=50, refine_every=5, refine_stop=100, reset_every=3), 1.0)
+    dens.stop_resets_at(5)
+    events = [one_step(dens, params, optimizers, s, a) for s in range(1, 10)]
+    resets = [e.iteration for e in events if e is not None and e.opacity_reset]
+    assert resets == [3]
