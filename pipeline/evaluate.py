@@ -115,6 +115,11 @@ def stage_timings(job: Path, stages: Sequence[str]) -> dict[str, float | None]:
 def _depth_errors(rendered: Sequence[Rendered], truths: Sequence[np.ndarray], metres_per_unit: float) -> dict:
     preds = [r.out.depth for r in rendered]
     masks = [(r.out.alpha >= ALPHA_VALID) & (t < FAR_DEPTH_M) for r, t in zip(rendered, truths, strict=True)]
+    if not any(bool((m & (p > 0)).any()) for p, m in zip(preds, masks, strict=True)):
+        # A model that lost its scene renders no surface: that is a finding to report, not a crash.
+        return {"scale_aligned": None, "at_alignment_scale": None, "units": "metres",
+                "reason": f"the model covers no true surface pixel of the held-out views (alpha >= {ALPHA_VALID}): "
+                          "no depth to compare"}
     res: dict[str, Any] = {"scale_aligned": scale_aligned_depth_error(preds, truths, masks)}
     p = np.concatenate([x[m] for x, m in zip(preds, masks, strict=True)]).astype(np.float64) * metres_per_unit
     g = np.concatenate([x[m] for x, m in zip(truths, masks, strict=True)]).astype(np.float64)
@@ -182,6 +187,9 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
         "views": names,
         "restored": image_scores(restored, lp),
         "input": image_scores(unrestored, lp),
+        # Per view, so a restoration that fails on one view (a far oblique one) is not hidden by the pool.
+        "per_view": [{"name": n, "restored_psnr": pooled_psnr([r]), "input_psnr": pooled_psnr([u])}
+                     for n, r, u in zip(names, restored, unrestored, strict=True)],
         # The same over the pixels some training view saw: unseen seabed can only be invented, not restored.
         "seen": seen_scores(names, restored, unrestored, seen),
         # The model with water against the photos at the true cameras: close to the held-out score when the

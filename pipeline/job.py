@@ -176,7 +176,8 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from .scene.loader import load_images, load_scene
     from .scene.split import split_views
     from .stages import atomic_write_json
-    from .train import TrainingCancelled, train
+    from .train import TrainingCancelled
+    from .train_guard import train_checked
 
     scene = load_scene(job / "scene")
     train_views, test_views = split_views(scene.views)
@@ -200,16 +201,16 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         ctx.on_progress("train", start + (1 - start) * it / max(1, total), f"iteration {it}/{total}")
 
     try:
-        res = train(train_scene, images, cfg, test_views=curve_views, test_images=test_images,
-                    checkpoint_dir=job / "train", on_progress=progress, should_cancel=ctx.should_cancel,
-                    device=ctx.device)
+        res, quality, recovery = train_checked(train_scene, images, cfg, job / "train", test_views=curve_views,
+                                               test_images=test_images, on_progress=progress,
+                                               should_cancel=ctx.should_cancel, device=ctx.device)
     except TrainingCancelled as e:
         raise JobCancelled(str(e)) from e
     out = {"mode": cfg.mode, "iterations": res.iteration, "metrics": res.metrics, "history": res.history,
            "medium": res.medium,
            "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
            "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale,
-           "curve_views": [v.name for v in curve_views]}
+           "curve_views": [v.name for v in curve_views], "quality": quality, "recovery": recovery}
     atomic_write_json(job / "train" / "train.json", out)
     return out
 

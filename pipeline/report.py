@@ -44,6 +44,42 @@ def selection_of(job: Path, options: dict, mode: str) -> dict[str, Any]:
     return {"mode": mode, "requested": options.get("mode", mode), "reason": "requested by the user"}
 
 
+def water_coefficients(medium: dict | None, metres_per_unit: float | None) -> dict[str, Any] | None:
+    """Each learned water coefficient with the sparse-point measurement it was held to and that measurement's
+    uncertainty (σ of its log, or logit for B∞) and source: ``measured`` (the data pinned it), ``prior`` (the
+    data could not: the classified water type's value), ``measured+prior``; or the fallback when the points
+    could not measure the water at all. None without a medium."""
+    if not medium or "beta_D" not in medium:
+        return None
+    est = medium.get("estimate")
+    unc = (est or {}).get("uncertainty") or {}
+    per_m = 1.0 / metres_per_unit if metres_per_unit else None
+    out: dict[str, Any] = {}
+    for k in ("beta_D", "beta_B", "B_inf"):
+        metric = per_m is not None and k != "B_inf"
+        entry: dict[str, Any] = {
+            "learned": medium[k], "units": "1/scene-unit" if k != "B_inf" else "linear intensity",
+            "measured": est.get(k) if est else None,
+            "sigma": unc.get(k, {}).get("sigma"), "data_sigma": unc.get(k, {}).get("data_sigma"),
+            "source": unc.get(k, {}).get("source") or (
+                None if est else ["not measured (too few points seen twice): grey-world prior"] * 3),
+            "sigma_scale": (unc.get("scale") or {}).get(k)}
+        if metric:
+            entry["learned_per_metre"] = [b * per_m for b in medium[k]]
+        out[k] = entry
+    out["prior"] = unc.get("prior")
+    return out
+
+
+def quality_of(train: dict) -> dict[str, Any] | None:
+    """Did the model keep its scene (``pipeline.quality``, measured by the train stage), and was it recovered
+    from a collapse (``pipeline.train_guard``)? None for jobs trained before the check existed."""
+    q = train.get("quality")
+    if not isinstance(q, dict):
+        return None
+    return {**q, "recovery": train.get("recovery")}
+
+
 def build_report(job: str | Path, export_s: float | None = None) -> dict[str, Any]:
     """The report.json content of a job whose evaluate stage has run (``export_s``: the export stage's seconds
     so far, as its marker is not written yet)."""
@@ -66,7 +102,9 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         model["medium_per_metre"] = {"beta_D": [b / scale for b in medium["beta_D"]],
                                      "beta_B": [b / scale for b in medium["beta_B"]], "B_inf": medium["B_inf"],
                                      "units": "1/m (B_inf: linear intensity)"}
+    model["water_coefficients"] = water_coefficients(medium, scale)
     out = job / "output"
+    train = _read_json(job / "train" / "train.json") or {}
     report = {
         "schema_version": SCHEMA_VERSION,
         "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -75,6 +113,7 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "mode": ev["mode"],
         "preset": options.get("preset", ""),
         "selection": selection_of(job, options, ev["mode"]),
+        "quality": quality_of(train),
         "metrics": ev["metrics"],
         "restoration": restoration,
         "timings": timings,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 from html import escape
 from typing import TYPE_CHECKING, Any
 
@@ -18,6 +19,8 @@ body{font:14px/1.45 system-ui,sans-serif;margin:24px auto;max-width:1150px;color
 h1{font-size:22px;margin:0 0 4px}h2{font-size:17px;margin:28px 0 8px;border-bottom:1px solid #cfd8dc}
 table{border-collapse:collapse;margin:6px 0}td,th{border:1px solid #cfd8dc;padding:3px 8px;text-align:right}
 th{background:#eef3f5}td.l,th.l{text-align:left}.muted{color:#5f7480}
+.warn{color:#8a1c12}.box{border:2px solid #c0392b;background:#fdf0ee;border-radius:6px;padding:8px 12px;margin:10px 0}
+.ok{border:1px solid #cfd8dc;border-radius:6px;padding:8px 12px;margin:10px 0}
 .head{display:flex;flex-wrap:wrap;gap:10px;margin:12px 0}
 .kpi{border:1px solid #cfd8dc;border-radius:6px;padding:8px 12px;min-width:130px}
 .kpi b{display:block;font-size:19px}
@@ -79,6 +82,11 @@ def _restoration(rest: dict | None) -> str:
             f"{fmt(rest['metres_per_unit'], 4)} m by aligning the cameras to the true ones (rotation error "
             f"{fmt(rest['alignment']['rot_err_deg_mean'], 3)}°).</p>"
             + table(["comparison", "PSNR (dB)", "SSIM", "LPIPS"], rows, 3))
+    if rest.get("per_view"):
+        html += table(["held-out view", "restored J PSNR (dB)", "photo PSNR (dB)", "gain (dB)"],
+                      [[p["name"], p["restored_psnr"], p["input_psnr"],
+                        None if p["restored_psnr"] is None or p["input_psnr"] is None
+                        else p["restored_psnr"] - p["input_psnr"]] for p in rest["per_view"]])
     seen = rest.get("seen")
     if seen is not None:
         html += (f"<p>Over the pixels some training view saw ({fmt(100 * seen['fraction'], 0)} % of them; "
@@ -96,6 +104,8 @@ def _restoration(rest: dict | None) -> str:
     else:
         html += "<p class=muted>No medium in this mode: no water coefficients recovered.</p>"
     d = rest["depth"]
+    if d.get("scale_aligned") is None:
+        return html + f"<p class=warn>Depth error: {escape(d.get('reason') or 'not measured')}.</p>"
     html += table(["depth error (held-out views)", "mean abs", "mean relative", "pixels"], [
         [f"least-squares scale ({fmt(d['scale_aligned']['scale'], 4)} m/unit)", d["scale_aligned"]["abs_error"],
          d["scale_aligned"]["rel_error"], d["scale_aligned"]["n_pixels"]],
@@ -122,12 +132,60 @@ def _timings(t: dict) -> str:
     return "<h2>Timings</h2>" + table(["what", "seconds / rate"], rows, 2)
 
 
+def _coefficients(w: dict | None) -> str:
+    """The water coefficients the model learned, the sparse-point measurement and its uncertainty."""
+    if not w:
+        return ""
+    rows = []
+    for k in ("beta_D", "beta_B", "B_inf"):
+        c = w[k]
+        for i, ch in enumerate("RGB"):
+            sig = (c.get("sigma") or [None] * 3)[i]
+            if sig is None:
+                spread = "not determined" if c.get("measured") else None
+            elif c.get("sigma_scale") == "log":
+                spread = f"×/÷ {min(math.exp(sig), 999.0):.2f}"
+            else:
+                spread = f"± {sig:.2f} (logit)"
+            rows.append([f"{k} {ch} ({c['units']})", c["learned"][i], (c.get("measured") or [None] * 3)[i],
+                         spread, (c.get("source") or [None] * 3)[i]])
+    prior = w.get("prior")
+    note = ("" if not prior else f" Prior where the points cannot pin a coefficient: the classified water type's "
+            f"optical depth {', '.join(f'{x:g}' for x in prior['optical_depth'])} (R, G, B) at the sightings' "
+            f"median range {prior['median_range']:.3g}, a factor of {math.exp(prior['sigma_log'] or 0):.1f} "
+            "either way.")
+    return ("<h2>Water coefficients</h2><p class=muted>Learned by the medium; measured from the sparse points "
+            "before training (what the training held the medium to), with that measurement's uncertainty (one σ) "
+            "and what determined it." + escape(note) + "</p>"
+            + table(["coefficient", "learned", "measured", "uncertainty", "source"], rows, 3))
+
+
+def _quality(q: dict | None) -> str:
+    """The model-quality block at the top: did the Gaussians keep the scene in every training view."""
+    if not q:
+        return "<div class=ok><b>Model quality</b>: not measured (job trained before the check existed).</div>"
+    pc = q.get("point_coverage_min")
+    line = (f"{q['n_gaussians']:,} Gaussians (budget {q['budget']:,}); training views covered (alpha ≥ 0.5): "
+            f"at least {100 * q['coverage_min']:.1f}% of pixels"
+            + (f", {100 * pc:.1f}% of their sparse points" if pc is not None else "")
+            + (f"; water share of the predicted light {100 * q['water_share_mean']:.0f}%"
+               if q.get("water_share_mean") is not None else ""))
+    warn = "".join(f"<li>{escape(w)}</li>" for w in q.get("warnings", []))
+    cls = "box" if warn else "ok"
+    rows = [[p["name"], p["coverage"], p["point_coverage"], p["water_share"]] for p in q.get("per_view", [])]
+    return (f"<div class={cls}><b>Model quality</b>: {escape(line)}."
+            + (f"<ul class=warn>{warn}</ul>" if warn else " No warnings.") + "</div>"
+            + "<details><summary>coverage per training view</summary>"
+            + table(["view", "pixels covered", "sparse points covered", "water share"], rows, 3) + "</details>")
+
+
 def render_html(r: dict, pics: Pictures) -> str:
     """The page for report ``r`` with ``pics`` embedded."""
     t = r["metrics"]["test"]
     sel = r["selection"]
     parts = [f"<h1>dualphys report: {escape(r['job']['name'])}</h1>",
              f"<p class=muted>created {escape(r['created_at'])}; report schema {r['schema_version']}</p>",
+             _quality(r.get("quality")),
              _kpis(r),
              f"<h2>Model selection</h2><p>Mode <b>{escape(sel['mode'])}</b>: {escape(sel['reason'])}.</p>",
              "<h2>Held-out views</h2>"
@@ -149,7 +207,7 @@ def render_html(r: dict, pics: Pictures) -> str:
                  f"{escape(sve.get('time', 'training seconds'))}.</p>"
                  + table(["iteration", "seconds", "PSNR (dB)"],
                          [[p["iteration"], p["elapsed_s"], p["psnr"]] for p in sve["points"]]))
-    parts += [_water(r["water"]), _timings(r["timings"]),
+    parts += [_water(r["water"]), _coefficients(r["model"].get("water_coefficients")), _timings(r["timings"]),
               "<h2>Config</h2><pre>" + escape(json.dumps({"job options": r["job"]["options"],
                                                           "training": r["config"]}, indent=2)) + "</pre>"]
     return ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>dualphys report "

@@ -1,0 +1,135 @@
+"""Does the trained model still hold the scene? Coverage, water share and Gaussian count, per training view.
+
+A medium model has a trivial way out on turbid water: leave a pixel uncovered and the water's veiling light B∞
+fills it (I = J·A + α·B + (1 − α)·B∞), which in murky water is close to the photo anyway. Such a model "fits"
+with a good PSNR while it has lost the seabed. These measurements tell that apart:
+
+- ``coverage``: share of a view's pixels where the Gaussians' alpha ≥ 0.5.
+- ``point_coverage``: share of the sparse points the view saw (its SfM track observations, else the points
+  projecting inside it) whose pixel has alpha ≥ 0.5. A matched feature is a surface by construction, so this
+  is the collapse test that open water in the frame (forward-looking views, the water column) cannot fool.
+- ``water_share``: mean over pixels of the light the water alone adds, α·B + (1 − α)·B∞, over the predicted
+  light I; 1 means the view is all veil.
+
+:func:`collapse_warnings` turns them into warnings; ``COLLAPSE_*`` are the limits (docs/DECISIONS.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .scene.types import Scene, Sightings, View
+
+COVER_ALPHA = 0.5  # a pixel is covered when the Gaussians' alpha is at least this
+COLLAPSE_POINT_COVERAGE = 0.9  # a view whose sparse points are covered less than this has lost its scene
+COLLAPSE_BUDGET_SHARE = 0.02  # fewer Gaussians than this share of the budget: the model collapsed
+WARN_POINT_COVERAGE = 0.98  # below this a view is reported as partly lost (a warning, not a failure)
+
+
+@dataclass
+class ViewQuality:
+    name: str
+    coverage: float  # share of pixels with alpha >= COVER_ALPHA
+    point_coverage: float | None  # share of the view's sparse points on covered pixels; None without points
+    water_share: float | None  # mean (water light / predicted light); None in mode 3dgs
+    n_points: int = 0  # sparse points the view saw
+
+    def to_json(self) -> dict:
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
+
+
+def view_points(scene: Scene, view: View) -> np.ndarray:
+    """Pixel positions [K, 2] (pixel-centre convention, at ``view.camera``'s resolution) of the sparse points
+    ``view`` saw: its track observations when the model has them, else the points projecting inside it."""
+    s: Sightings | None = (scene.sightings or {}).get(view.name)
+    if s is not None and len(s.xy):
+        return np.asarray(s.xy, dtype=np.float64) * (view.camera.width / s.width)
+    if not len(scene.points):
+        return np.zeros((0, 2))
+    u, v, _ = view.project(scene.points)
+    ok = np.isfinite(u) & (u >= 0) & (u < view.camera.width) & (v >= 0) & (v < view.camera.height)
+    return np.stack([u[ok], v[ok]], axis=1)
+
+
+def view_quality(name: str, alpha: np.ndarray, points_xy: np.ndarray, water: np.ndarray | None = None,
+                 predicted: np.ndarray | None = None) -> ViewQuality:
+    """alpha [H, W]; points_xy [K, 2] pixel positions; water, predicted [H, W, 3] (medium modes)."""
+    h, w = alpha.shape
+    covered = alpha >= COVER_ALPHA
+    pc = None
+    if len(points_xy):
+        x = np.clip(np.floor(points_xy[:, 0]).astype(int), 0, w - 1)
+        y = np.clip(np.floor(points_xy[:, 1]).astype(int), 0, h - 1)
+        pc = float(covered[y, x].mean())
+    share = None
+    if water is not None and predicted is not None:
+        share = float((water.sum(-1) / np.maximum(predicted.sum(-1), 1e-4)).clip(0, 1).mean())
+    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)))
+
+
+def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: int) -> tuple[bool, list[str]]:
+    """(collapsed, warnings). Collapsed: a view lost its sparse points (point coverage below
+    ``COLLAPSE_POINT_COVERAGE``) or the Gaussians are fewer than ``COLLAPSE_BUDGET_SHARE`` of the budget."""
+    warnings: list[str] = []
+    collapsed = False
+    lost = [q for q in views if q.point_coverage is not None and q.point_coverage < COLLAPSE_POINT_COVERAGE]
+    if lost:
+        collapsed = True
+        worst = min(lost, key=lambda q: q.point_coverage or 0.0)
+        warnings.append(f"{len(lost)} of {len(views)} training views lost their scene (sparse points covered: "
+                        f"worst {worst.name} {100 * (worst.point_coverage or 0):.0f}%, limit "
+                        f"{100 * COLLAPSE_POINT_COVERAGE:.0f}%)")
+    thin = [q for q in views if q.point_coverage is not None
+            and COLLAPSE_POINT_COVERAGE <= q.point_coverage < WARN_POINT_COVERAGE]
+    if thin:
+        warnings.append(f"{len(thin)} training views partly uncovered (sparse points covered below "
+                        f"{100 * WARN_POINT_COVERAGE:.0f}%: {', '.join(q.name for q in thin[:5])})")
+    if budget > 0 and n_gaussians < COLLAPSE_BUDGET_SHARE * budget:
+        collapsed = True
+        warnings.append(f"only {n_gaussians} Gaussians, {100 * n_gaussians / budget:.1f}% of the budget {budget}")
+    return collapsed, warnings
+
+
+def opacity_histogram(opacities: np.ndarray, edges: Sequence[float] = (0, 0.005, 0.01, 0.05, 0.1, 0.5, 0.9, 1.0001)
+                      ) -> dict[str, int]:
+    """Counts of activated opacities in bins (a diagnostic of resets and pruning)."""
+    counts, _ = np.histogram(np.asarray(opacities, dtype=np.float64), bins=np.asarray(edges))
+    return {f"{a:g}-{min(b, 1):g}": int(c) for a, b, c in zip(edges[:-1], edges[1:], counts, strict=True)}
+
+
+def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, backend: str = "auto") -> dict:
+    """The quality block of a trained checkpoint ``state`` over ``views`` (the training views at the training
+    resolution; ``scene`` holds their sparse points and tracks): per-view coverage, point coverage and water
+    share, the Gaussian count against ``budget`` (0 = no cap), the opacity histogram, collapse and warnings."""
+    from .restore import model_from_state, render_outputs
+    from .splat.gaussians import activate
+
+    model = model_from_state(state)
+    per_view = []
+    for v in views:
+        o = render_outputs(model.gaussians, v, model.medium, model.sh_degree, backend, model.background)
+        water = None if o.A is None else np.clip(o.I - o.J * o.A, 0, None)
+        per_view.append(view_quality(v.name, o.alpha, view_points(scene, v), water,
+                                     o.I if o.A is not None else None))
+    n = int(model.gaussians["means"].shape[0])
+    collapsed, warnings = collapse_warnings(per_view, n, budget)
+    opac = activate(model.gaussians).opacities.detach().cpu().numpy() if n else np.zeros(0)
+    pcs = [q.point_coverage for q in per_view if q.point_coverage is not None]
+    shares = [q.water_share for q in per_view if q.water_share is not None]
+    return {
+        "collapsed": collapsed,
+        "warnings": warnings,
+        "n_gaussians": n,
+        "budget": int(budget),
+        "coverage_min": round(min((q.coverage for q in per_view), default=0.0), 4),
+        "coverage_mean": round(float(np.mean([q.coverage for q in per_view])) if per_view else 0.0, 4),
+        "point_coverage_min": round(min(pcs), 4) if pcs else None,
+        "water_share_mean": round(float(np.mean(shares)), 4) if shares else None,
+        "opacity_histogram": opacity_histogram(opac),
+        "limits": {"cover_alpha": COVER_ALPHA, "collapse_point_coverage": COLLAPSE_POINT_COVERAGE,
+                   "collapse_budget_share": COLLAPSE_BUDGET_SHARE, "warn_point_coverage": WARN_POINT_COVERAGE},
+        "per_view": [q.to_json() for q in per_view],
+    }

@@ -1,0 +1,58 @@
+"""Does the model keep its scene: coverage, point coverage, water share, collapse verdicts (pipeline.quality)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.quality import (
+    COLLAPSE_POINT_COVERAGE,
+    collapse_warnings,
+    opacity_histogram,
+    view_points,
+    view_quality,
+)
+from pipeline.scene.types import Camera, Scene, Sightings, View
+
+
+def test_view_quality_counts_covered_pixels_and_points():
+    alpha = np.zeros((10, 20))
+    alpha[:, :10] = 0.9  # left half covered
+    pts = np.array([[2.5, 3.5], [5.5, 9.5], [15.5, 1.5], [19.9, 9.9]])  # 2 left, 2 right
+    q = view_quality("v", alpha, pts)
+    assert q.coverage == 0.5 and q.point_coverage == 0.5 and q.n_points == 4 and q.water_share is None
+    water = np.full((10, 20, 3), 0.1)
+    pred = np.full((10, 20, 3), 0.4)
+    assert abs(view_quality("v", alpha, pts, water, pred).water_share - 0.25) < 1e-9
+    assert view_quality("v", alpha, np.zeros((0, 2))).point_coverage is None
+
+
+def test_collapse_is_a_view_that_lost_its_points_or_a_tiny_model():
+    ok = view_quality("a", np.ones((4, 4)), np.array([[1.0, 1.0]]))
+    lost = view_quality("b", np.zeros((4, 4)), np.array([[1.0, 1.0]]))
+    assert collapse_warnings([ok, ok], 5000, 10_000) == (False, [])
+    collapsed, warnings = collapse_warnings([ok, lost], 5000, 10_000)
+    assert collapsed and "1 of 2 training views lost their scene" in warnings[0] and "b 0%" in warnings[0]
+    collapsed, warnings = collapse_warnings([ok, ok], 168, 100_000)  # the reported 168-Gaussian model
+    assert collapsed and "168 Gaussians" in warnings[0]
+    partly_alpha = np.ones((10, 10))
+    partly_alpha[9, 9] = 0
+    partly = view_quality("c", partly_alpha, np.array([[0.5, 0.5]] * 95 + [[9.5, 9.5]] * 5))
+    assert COLLAPSE_POINT_COVERAGE <= partly.point_coverage < 0.98
+    collapsed, warnings = collapse_warnings([partly], 5000, 10_000)
+    assert not collapsed and "partly uncovered" in warnings[0]
+
+
+def test_view_points_prefers_tracks_and_rescales_them():
+    cam = Camera(40, 30, 30.0, 30.0, 20.0, 15.0)
+    v = View("a.png", cam, np.eye(3), np.zeros(3))
+    pts = np.array([[0.0, 0.0, 2.0], [0.5, 0.0, 2.0], [0.0, 0.0, -1.0]])
+    scene = Scene([v], pts)
+    xy = view_points(scene, v)  # no tracks: projections inside the frame and in front
+    np.testing.assert_allclose(xy, [[20.0, 15.0], [27.5, 15.0]])
+    scene.sightings = {"a.png": Sightings(np.array([1]), np.array([[55.0, 30.0]]), width=80)}
+    np.testing.assert_allclose(view_points(scene, v), [[27.5, 15.0]])  # the track, at half the model's size
+
+
+def test_opacity_histogram_bins_everything():
+    h = opacity_histogram(np.array([0.001, 0.007, 0.3, 0.95, 1.0]))
+    assert sum(h.values()) == 5 and h["0-0.005"] == 1 and h["0.9-1"] == 2
