@@ -51,6 +51,18 @@ class MediumEstimate:
     n_observations: int
     residual: float  # RMS colour residual of the fit
     range_ratio: float  # 90th / 10th percentile of the ranges used: how much range variation there was
+    # Per coefficient (beta_D, beta_B, B_inf) and channel: the standard deviation of its log (beta) or logit
+    # (B_inf) after the fit (Laplace approximation), what the data alone would give, and which dominated.
+    uncertainty: dict | None = None
+    median_range: float = 0.0  # median range of the sightings used (scene units)
+
+    def effect(self, r: float | None = None) -> float:
+        """How much this water changes a surface seen at range ``r`` (default: the sightings' median range): the
+        mean over channels of (1 − e^(−β_D r)) + B∞(1 − e^(−β_B r)), light removed plus light added — the same
+        quantity as the mode probe's learned ``effect``."""
+        r = self.median_range if r is None else r
+        bd, bb, binf = (np.asarray(x, dtype=np.float64) for x in (self.beta_D, self.beta_B, self.B_inf))
+        return float(np.mean((1 - np.exp(-bd * r)) + binf * (1 - np.exp(-bb * r))))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -126,6 +138,37 @@ def measure_water(points: np.ndarray, views: Sequence[View], images: Sequence[np
     return _CACHE[key]
 
 
+PRIOR_SIGMA_LOG = float(np.log(3.0))  # the water-type prior on log β_D and log β_B: a factor of 3 either way
+BACKSCATTER_EXCESS_SIGMA = 0.1  # log β_B may exceed log β_D by about this much before it costs (Prior.penalty)
+DATA_DOMINATES = 0.5  # data σ below this share of the prior σ: "measured"; above 1/this: "prior"
+
+
+@dataclass
+class Prior:
+    """Independent normal priors on θ = (log β_D, log β_B, logit B∞) of one channel; sigma inf = none."""
+
+    mean: tuple[float, float, float]
+    sigma: tuple[float, float, float]
+
+    def penalty(self, theta: torch.Tensor) -> torch.Tensor:
+        m = torch.as_tensor(self.mean, dtype=theta.dtype)
+        w = 1.0 / torch.as_tensor(self.sigma, dtype=theta.dtype) ** 2  # 0 where sigma is inf
+        # Physics: backscatter grows with the scattering coefficient b, the direct signal decays with the beam
+        # attenuation c = a + b >= b, so β_B above β_D is unphysical (Akkaynak & Treibitz 2018 relate β_B to b and
+        # β_D to c). Without this a narrow range spread explains a colour cast as a veil that saturates with
+        # range (β_B large) while nothing is attenuated (β_D -> 0).
+        excess = torch.relu(theta[1] - theta[0]) / BACKSCATTER_EXCESS_SIGMA
+        return (w * (theta - m) ** 2).sum() + excess**2
+
+
+def water_type_prior(optical_depth: float, r_med: float) -> Prior:
+    """Where the classified water type puts one channel (its optical depth at the sightings' median range):
+    β_D and β_B around optical_depth / r_med, a factor of 3 either way; no prior on B∞ (the veil's colour is
+    what the photos show best). Scale-free: the optical depth needs no metric scale."""
+    mu = float(np.log(max(optical_depth, 1e-3) / r_med))
+    return Prior((mu, mu, 0.0), (PRIOR_SIGMA_LOG, PRIOR_SIGMA_LOG, float("inf")))
+
+
 def _channel_loss(theta: torch.Tensor, inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Tensor,  # noqa: E741
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Least-squares misfit of one channel for θ = (log β_D, log β_B, logit B∞), with every point's J
@@ -140,8 +183,14 @@ def _channel_loss(theta: torch.Tensor, inv: torch.Tensor, n_points: int, r: torc
 
 
 def _fit_channel(inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Tensor,  # noqa: E741
-                 starts: Sequence[tuple[float, float, float]]) -> tuple[torch.Tensor, float]:
+                 starts: Sequence[tuple[float, float, float]], penalty=None) -> tuple[torch.Tensor, float]:
+    """Minimise the channel's misfit (+ ``penalty(θ)``) by L-BFGS from each start (β_D, β_B, B∞); the best."""
     best: tuple[torch.Tensor, float] | None = None
+
+    def objective(theta: torch.Tensor) -> torch.Tensor:
+        loss = _channel_loss(theta, inv, n_points, r, I)[0]
+        return loss if penalty is None else loss + penalty(theta)
+
     for s in starts:
         theta = torch.tensor([np.log(s[0]), np.log(s[1]), float(np.log(s[2] / (1 - s[2])))], dtype=torch.float64,
                              requires_grad=True)
@@ -150,7 +199,7 @@ def _fit_channel(inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Ten
 
         def closure(theta: torch.Tensor = theta, opt: torch.optim.LBFGS = opt) -> torch.Tensor:
             opt.zero_grad()
-            loss = _channel_loss(theta, inv, n_points, r, I)[0]
+            loss = objective(theta)
             loss.backward()
             return loss
 
@@ -158,18 +207,64 @@ def _fit_channel(inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Ten
         with torch.no_grad():
             theta.clamp_(min=torch.tensor([-12.0, -12.0, -8.0], dtype=torch.float64),
                          max=torch.tensor([4.0, 4.0, 3.0], dtype=torch.float64))
-            loss = float(_channel_loss(theta, inv, n_points, r, I)[0])
+            loss = float(objective(theta))
         if best is None or loss < best[1]:
             best = (theta.detach().clone(), loss)
     assert best is not None
     return best
 
 
+def _data_precision(theta: torch.Tensor, inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Tensor,  # noqa: E741
+                    s2: float, penalty=None) -> np.ndarray:
+    """Precision of θ (Laplace approximation): M / (2 s²) · ∇²(mean squared residual [+ ``penalty``]) at θ,
+    the data's alone or, with the prior's penalty, the posterior's. [3, 3]"""
+
+    def objective(t: torch.Tensor) -> torch.Tensor:
+        loss = _channel_loss(t, inv, n_points, r, I)[0]
+        return loss if penalty is None else loss + penalty(t)
+
+    H = torch.autograd.functional.hessian(objective, theta.detach())
+    return H.numpy() * len(r) / (2.0 * max(s2, 1e-12))
+
+
+def _sigmas(precision: np.ndarray, rel_tol: float = 1e-9) -> np.ndarray:
+    """Marginal standard deviations from a (symmetric) precision matrix. A parameter with a share in a
+    direction the precision does not constrain (eigenvalue ≤ ``rel_tol`` x the largest, or negative: the fit
+    sits at a kink or a bound) gets inf; the others come from the pseudo-inverse on the constrained subspace,
+    so a well-measured β_D keeps its σ when β_B and B∞ trade off against each other."""
+    p = 0.5 * (precision + precision.T)
+    if not np.all(np.isfinite(p)):
+        return np.full(len(p), np.inf)
+    w, v = np.linalg.eigh(p)
+    good = w > rel_tol * max(float(np.abs(w).max()), 1e-300)
+    cov = (v[:, good] / w[good]) @ v[:, good].T
+    free = (np.abs(v[:, ~good]) > 1e-3).any(axis=1)
+    return np.where(free, np.inf, np.sqrt(np.clip(np.diag(cov), 0, None)))
+
+
+def _source(data_sigma: float, prior_sigma: float) -> str:
+    """Which determined a coefficient: ``measured`` (the data's σ well below the prior's), ``prior``,
+    ``measured+prior``, or ``not determined`` (neither the data nor a prior pin it)."""
+    if not np.isfinite(data_sigma):
+        return "prior" if np.isfinite(prior_sigma) else "not determined"
+    if not np.isfinite(prior_sigma) or data_sigma < DATA_DOMINATES * prior_sigma:
+        return "measured"
+    return "prior" if data_sigma > prior_sigma / DATA_DOMINATES else "measured+prior"
+
+
 def fit_medium(obs: Observations, init_optical_depth: Sequence[float] = (0.8, 0.3, 0.25),
-               min_points: int = 50) -> MediumEstimate | None:
-    """Least-squares fit, per channel, of β_D, β_B, B∞ (shared) and J (per point, eliminated in closed form)
-    to the sightings, from a few starting points; None when the sightings cannot say anything about range
-    (fewer than ``min_points`` points seen twice)."""
+               min_points: int = 50, prior: bool = True) -> MediumEstimate | None:
+    """Fit, per channel, of β_D, β_B, B∞ (shared) and J (per point, eliminated in closed form) to the
+    sightings; None when the sightings cannot say anything about range (fewer than ``min_points`` points seen
+    twice).
+
+    First the least-squares fit from a few starts, which gives the residual variance s². Then, with ``prior``,
+    the maximum a posteriori fit under the water type's prior (``water_type_prior``: ``init_optical_depth`` is
+    the classified type's optical depth at the median range): it moves a coefficient only where the data do
+    not pin it. A narrow range spread (real footage: the same patch seen from 1.5-3 m) cannot separate
+    attenuation from veil, and the least-squares fit then lands on a bound (β_D = 0: "no attenuation"); the
+    prior keeps it at the water type's value instead. Each coefficient's uncertainty (σ of its log, Laplace
+    approximation) is reported with and without the prior, and which of the two dominated."""
     counts = np.bincount(obs.point) if obs.point.size else np.zeros(0, np.int64)
     if int((counts >= 2).sum()) < min_points:
         log.info("medium estimate: only %d points seen twice; skipped", int((counts >= 2).sum()))
@@ -181,19 +276,46 @@ def fit_medium(obs: Observations, init_optical_depth: Sequence[float] = (0.8, 0.
     colour = torch.as_tensor(obs.colour[keep], dtype=torch.float64)
     r_med = float(r.median())
     coef, sq = [], []
+    names = ("beta_D", "beta_B", "B_inf")
+    unc: dict[str, dict[str, list]] = {k: {"sigma": [], "data_sigma": [], "source": []} for k in names}
+    dof = max(int(keep.sum()) - len(pid) - 3, 1)
     for c in range(3):
         tau = max(float(init_optical_depth[c]), 1e-3)
         binf0 = float(colour[:, c].quantile(0.05).clamp(0.02, 0.9))
         starts = [(k * tau / r_med, k * tau / r_med, binf0) for k in (0.5, 1.0, 2.0)]
         theta, loss = _fit_channel(inv_t, len(pid), r, colour[:, c], starts)
+        s2 = loss * int(keep.sum()) / dof
+        pr = water_type_prior(tau, r_med)
+        # The data's own uncertainty, at the least-squares optimum.
+        data = _sigmas(_data_precision(theta, inv_t, len(pid), r, colour[:, c], s2, None))
+        post = data
+        if prior:
+            scale = s2 / int(keep.sum())  # the prior in units of the mean squared residual (module docstring)
+            t0 = tuple(float(x) for x in (theta[0].exp(), theta[1].exp(), theta[2].sigmoid()))
+            p0 = (tau / r_med, tau / r_med, t0[2])
+
+            def penalty(t: torch.Tensor, pr: Prior = pr, scale: float = scale) -> torch.Tensor:
+                return scale * pr.penalty(t)
+
+            theta, _ = _fit_channel(inv_t, len(pid), r, colour[:, c], [t0, p0], penalty=penalty)
+            loss = float(_channel_loss(theta, inv_t, len(pid), r, colour[:, c])[0])
+            post = _sigmas(_data_precision(theta, inv_t, len(pid), r, colour[:, c], s2, penalty))
+        for k, name in enumerate(names):
+            unc[name]["sigma"].append(float(post[k]) if np.isfinite(post[k]) else None)  # None: not determined
+            unc[name]["data_sigma"].append(float(data[k]) if np.isfinite(data[k]) else None)
+            unc[name]["source"].append(_source(float(data[k]), pr.sigma[k] if prior else float("inf")))
         coef.append((float(theta[0].exp()), float(theta[1].exp()), float(theta[2].sigmoid())))
         sq.append(loss)
+    unc["scale"] = {"beta_D": "log", "beta_B": "log", "B_inf": "logit"}  # type: ignore[assignment]
+    unc["prior"] = {"optical_depth": [float(x) for x in init_optical_depth], "median_range": r_med,  # type: ignore[assignment]
+                    "sigma_log": PRIOR_SIGMA_LOG if prior else None}
     q10, q90 = np.percentile(obs.range[keep], [10, 90])
     est = MediumEstimate(
         beta_D=tuple(c[0] for c in coef), beta_B=tuple(c[1] for c in coef),  # type: ignore[arg-type]
         B_inf=tuple(c[2] for c in coef), n_points=len(pid), n_observations=int(keep.sum()),  # type: ignore[arg-type]
-        residual=float(np.sqrt(np.mean(sq))), range_ratio=float(q90 / max(q10, 1e-9)))
-    log.info("medium estimate from %d points / %d sightings: beta_D %s beta_B %s B_inf %s (rms %.4f)",
+        residual=float(np.sqrt(np.mean(sq))), range_ratio=float(q90 / max(q10, 1e-9)), uncertainty=unc,
+        median_range=r_med)
+    log.info("medium estimate from %d points / %d sightings: beta_D %s beta_B %s B_inf %s (rms %.4f; beta_D %s)",
              est.n_points, est.n_observations, np.round(est.beta_D, 3), np.round(est.beta_B, 3),
-             np.round(est.B_inf, 3), est.residual)
+             np.round(est.B_inf, 3), est.residual, unc["beta_D"]["source"])
     return est

@@ -83,3 +83,51 @@ def test_no_water_measures_almost_no_attenuation(generated):
     est = fit_medium(gather_observations(scene.points, scene.views, images, scene.sightings))
     assert est is not None
     assert max(est.beta_D) < 0.05, est  # 1/m; the medium preset's weakest channel is 0.11
+
+
+def _narrow(water, lo, hi, noise, seed=0, n_points=400, per_point=6) -> Observations:
+    rng = np.random.default_rng(seed)
+    point = np.repeat(np.arange(n_points), per_point)
+    r = rng.uniform(lo, hi, point.size)
+    J = rng.uniform(0.05, 0.9, (n_points, 3))
+    bd, bb, binf = (np.asarray(x) for x in (water.beta_D, water.beta_B, water.B_inf))
+    colour = J[point] * np.exp(-bd * r[:, None]) + binf * (1 - np.exp(-bb * r[:, None]))
+    return Observations(point, r, colour + rng.normal(0.0, noise, colour.shape))
+
+
+def test_uncertainty_is_reported_and_shrinks_with_the_range_spread():
+    water = WATER_PRESETS["medium"]
+    wide = fit_medium(_narrow(water, 1.0, 6.0, 0.01), (1.6, 0.6, 0.5))
+    narrow = fit_medium(_narrow(water, 1.8, 2.4, 0.03), (1.6, 0.6, 0.5))
+    for est in (wide, narrow):
+        u = est.uncertainty
+        assert set(u) >= {"beta_D", "beta_B", "B_inf", "prior", "scale"}
+        assert all(len(u[k]["sigma"]) == 3 and len(u[k]["source"]) == 3 for k in ("beta_D", "beta_B", "B_inf"))
+    assert all(s < 0.05 for s in wide.uncertainty["beta_D"]["data_sigma"])  # 1-6 m pins β_D to a few %
+    assert all(n > w for n, w in zip(narrow.uncertainty["beta_D"]["data_sigma"],
+                                     wide.uncertainty["beta_D"]["data_sigma"], strict=True))
+    assert wide.uncertainty["beta_D"]["source"] == ["measured"] * 3
+    np.testing.assert_allclose(wide.beta_D, water.beta_D, rtol=0.03)  # the prior does not move measured values
+
+
+def test_a_narrow_range_falls_back_on_the_water_type_and_physics_not_on_a_bound():
+    """Sightings over 1.8-2.4 m cannot separate the veil's saturation from its strength: least squares puts β_B
+    near zero (a veil that never saturates, B∞ large); the water type's prior and c >= b keep it physical."""
+    water = WATER_PRESETS["medium"]
+    obs = _narrow(water, 1.8, 2.4, 0.03)
+    free = fit_medium(obs, (1.6, 0.6, 0.5), prior=False)
+    held = fit_medium(obs, (1.6, 0.6, 0.5))
+    err = lambda est: np.abs(np.log(np.asarray(est.beta_B) / np.asarray(water.beta_B)))  # noqa: E731
+    assert err(held).max() < 0.8 and err(free).max() > 1.5, (held.beta_B, free.beta_B)
+    assert all(b <= d * 1.2 for b, d in zip(held.beta_B, held.beta_D, strict=True))  # β_B <= β_D (c >= b)
+
+
+def test_no_range_information_is_not_determined_but_prior():
+    """Every point seen at one range: nothing about range can be measured; the coefficients are the prior's."""
+    rng = np.random.default_rng(1)
+    point = np.repeat(np.arange(300), 3)
+    obs = Observations(point, np.full(point.size, 2.0) + rng.normal(0, 1e-6, point.size),
+                       np.clip(rng.uniform(0.1, 0.6, (300, 3))[point] + rng.normal(0, 0.01, (point.size, 3)), 0, 1))
+    est = fit_medium(obs, (1.6, 0.6, 0.5))
+    assert est is not None
+    assert "prior" in est.uncertainty["beta_D"]["source"]
