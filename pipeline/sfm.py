@@ -187,7 +187,6 @@ def run_sfm(
         )
     log.info("sfm: %d readable of %d images, %s matching, %s", len(good), total, matcher, cfg.camera_model)
 
-    db_path = distorted / "database.db"
     with quiet_pycolmap(log):
         pycolmap.set_random_seed(cfg.seed)
         reader = pycolmap.ImageReaderOptions()
@@ -196,45 +195,29 @@ def run_sfm(
         ext.num_threads = cfg.num_threads
         ext.max_image_size = cfg.max_image_size
         ext.sift.max_num_features = cfg.max_num_features
-        # Register the images first, one thread, in name order: image ids then follow the names. Letting the
-        # multi-threaded extractor create them numbers them in completion order, which changes match and
-        # mapping order and makes runs differ (measured on RUIE, same config: 1.103 vs 1.148 px).
-        pycolmap.Database.open(str(db_path)).close()  # import_images needs an existing database
-        pycolmap.import_images(db_path, src_dir, camera_mode=camera_mode, image_names=names, options=reader)
-        pycolmap.extract_features(
-            db_path, src_dir, image_names=names, camera_mode=camera_mode, reader_options=reader,
-            extraction_options=ext, device=pycolmap.Device.cpu, cancellation_token=cancellation_token,
-        )  # fmt: skip
-        in_db = _db_image_names(db_path)
-        for n in names:
-            if n not in in_db:
-                skipped.append((n, "pycolmap could not read it"))
-        names = [n for n in names if n in in_db]
-        if len(names) < MIN_IMAGES:
-            raise TooFewImagesError(_too_few_msg(len(names), images_dir), skipped=skipped)
-        _match(db_path, matcher, cfg, cancellation_token)
-        if _num_inlier_matches(db_path) == 0:
-            raise NoModelError(
-                f"no two of the {len(names)} images in {images_dir} share enough features to be matched. "
-                f"Photos must overlap (about 60 % between neighbours) and show texture; open water, sand or "
-                f"very turbid water gives too few features.",
-                skipped=skipped,
-            )
-        rec = _map(db_path, src_dir, distorted, cfg, cancellation_token)
+        attempt = _Attempt(src_dir, names, camera_mode, reader, ext, matcher, cfg, cancellation_token, skipped)
+        rec, first_error = None, None
+        try:
+            rec, names = attempt.run(distorted / "database.db", src_dir, distorted, images_dir)
+        except (NoModelError, TooFewRegisteredError) as e:
+            first_error = e
+        if rec is None or rec.num_reg_images() < RETRY_BELOW_REGISTERED * len(names):
+            # Murky water: SIFT's contrast threshold leaves too few features on a dark, hazy frame. Extract
+            # them again from contrast-stretched copies (mapping still reads the originals for point colours).
+            stretched = _stage_stretched(src_dir, names, distorted / "stretched")
+            try:
+                rec2, names2 = attempt.run(distorted / "database_stretched.db", stretched, distorted, images_dir)
+            except (NoModelError, TooFewRegisteredError):
+                rec2 = None
+            if rec2 is not None and (rec is None or rec2.num_reg_images() > rec.num_reg_images()):
+                warnings.append(f"low-contrast images: features were extracted from contrast-stretched copies "
+                                f"({rec2.num_reg_images()} registered, "
+                                f"{rec.num_reg_images() if rec is not None else 0} without)")
+                rec, names = rec2, names2
         if rec is None:
-            raise NoModelError(
-                f"pycolmap could not start a 3D model from the {len(names)} images in {images_dir}: no "
-                f"pair of images with enough parallax. The camera must move between shots (identical or "
-                f"rotation-only photos cannot be triangulated).",
-                skipped=skipped,
-            )
+            assert first_error is not None
+            raise first_error
         registered = rec.num_reg_images()
-        if registered < cfg.min_registered:
-            raise TooFewRegisteredError(
-                f"only {registered} of {len(names)} images in {images_dir} could be placed in the 3D model "
-                f"(at least {cfg.min_registered} needed). Check the overlap between consecutive photos.",
-                skipped=skipped,
-            )
         reproj = float(rec.compute_mean_reprojection_error())
         model_dir = distorted / "sparse" / "0"
         model_dir.mkdir(parents=True)
@@ -312,6 +295,88 @@ def _stage_oriented(
             )
         else:
             os.symlink(p.resolve(), stage / p.name)
+    return stage
+
+
+RETRY_BELOW_REGISTERED = 0.8  # fewer registered images than this share: try again on contrast-stretched copies
+STRETCH_PERCENTILES = (1.0, 99.0)  # each channel is stretched linearly so these percentiles map to 0 and 1
+
+
+@dataclass
+class _Attempt:
+    """One feature extraction + matching + mapping pass over the same images (the retry changes only where the
+    features are read from)."""
+
+    src_dir: Path
+    names: list[str]
+    camera_mode: Any
+    reader: Any
+    ext: Any
+    matcher: str
+    cfg: SfmConfig
+    token: Any
+    skipped: list[tuple[str, str]]
+
+    def run(self, db_path: Path, feature_dir: Path, distorted: Path, images_dir: Path) -> tuple[Any, list[str]]:
+        """(the largest model, the names that were read); raises NoModelError / TooFewRegisteredError."""
+        import pycolmap
+
+        if db_path.exists():
+            db_path.unlink()
+        names = list(self.names)
+        # Register the images first, one thread, in name order: image ids then follow the names. Letting the
+        # multi-threaded extractor create them numbers them in completion order, which changes match and
+        # mapping order and makes runs differ (measured on RUIE, same config: 1.103 vs 1.148 px).
+        pycolmap.Database.open(str(db_path)).close()  # import_images needs an existing database
+        pycolmap.import_images(db_path, feature_dir, camera_mode=self.camera_mode, image_names=names,
+                               options=self.reader)
+        pycolmap.extract_features(
+            db_path, feature_dir, image_names=names, camera_mode=self.camera_mode, reader_options=self.reader,
+            extraction_options=self.ext, device=pycolmap.Device.cpu, cancellation_token=self.token,
+        )  # fmt: skip
+        in_db = _db_image_names(db_path)
+        for n in names:
+            if n not in in_db and (n, "pycolmap could not read it") not in self.skipped:
+                self.skipped.append((n, "pycolmap could not read it"))
+        names = [n for n in names if n in in_db]
+        if len(names) < MIN_IMAGES:
+            raise TooFewImagesError(_too_few_msg(len(names), images_dir), skipped=self.skipped)
+        _match(db_path, self.matcher, self.cfg, self.token)
+        if _num_inlier_matches(db_path) == 0:
+            raise NoModelError(
+                f"no two of the {len(names)} images in {images_dir} share enough features to be matched. "
+                f"Photos must overlap (about 60 % between neighbours) and show texture; open water, sand or "
+                f"very turbid water gives too few features.",
+                skipped=self.skipped,
+            )
+        rec = _map(db_path, self.src_dir, distorted, self.cfg, self.token)
+        if rec is None:
+            raise NoModelError(
+                f"pycolmap could not start a 3D model from the {len(names)} images in {images_dir}: no "
+                f"pair of images with enough parallax. The camera must move between shots (identical or "
+                f"rotation-only photos cannot be triangulated).",
+                skipped=self.skipped,
+            )
+        if rec.num_reg_images() < self.cfg.min_registered:
+            raise TooFewRegisteredError(
+                f"only {rec.num_reg_images()} of {len(names)} images in {images_dir} could be placed in the 3D "
+                f"model (at least {self.cfg.min_registered} needed). Check the overlap between consecutive photos.",
+                skipped=self.skipped,
+            )
+        return rec, names
+
+
+def _stage_stretched(src_dir: Path, names: list[str], stage: Path) -> Path:
+    """Contrast-stretched 8-bit copies of ``names`` (same names) for feature extraction: each channel linearly
+    from its ``STRETCH_PERCENTILES`` to [0, 1]."""
+    import numpy as np
+
+    stage.mkdir(parents=True, exist_ok=True)
+    for n in names:
+        img = read_image(src_dir / n)  # [H, W, 3] in [0, 1]
+        lo, hi = np.percentile(img.reshape(-1, img.shape[-1]), STRETCH_PERCENTILES, axis=0)
+        out = np.clip((img - lo) / np.maximum(hi - lo, 1.0 / 255.0), 0.0, 1.0)
+        write_image(stage / n, out, bits=8)
     return stage
 
 

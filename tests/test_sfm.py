@@ -197,3 +197,21 @@ def test_synthetic_scene_matches_ground_truth(tmp_path: Path, record_property: p
 def test_sfm_error_is_the_common_base() -> None:
     for cls in (NoImagesError, TooFewImagesError, NoModelError, TooFewRegisteredError):
         assert issubclass(cls, SfmError)
+
+
+@pytest.mark.slow
+def test_low_contrast_murky_frames_register_on_stretched_features(tmp_path: Path) -> None:
+    """Dark, hazy frames (luminance within ~20 grey levels, like the photo family's turbid water) leave SIFT
+    too few features to match; SfM then extracts them again from contrast-stretched copies."""
+    src = tmp_path / "murky"
+    src.mkdir()
+    for p in sorted((RUIE / "images").iterdir())[:10]:
+        img = read_image(p)
+        write_image(src / f"{p.stem}.png", 0.30 + 0.07 * (img - img.mean()), bits=8)  # ~18 grey levels of range
+    s = run_sfm(src, tmp_path / "out", CFG)
+    assert s.registered >= 9, s
+    assert any("contrast-stretched" in w for w in s.warnings), s.warnings
+    assert (tmp_path / "out" / "distorted" / "stretched").is_dir()
+    # The model's points keep the colours of the photos, not of the stretched copies.
+    est = read_colmap(tmp_path / "out" / "sparse" / "0", tmp_path / "out" / "images")
+    assert 0.2 < float(np.median(est.colors)) < 0.4
