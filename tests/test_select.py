@@ -33,10 +33,17 @@ def test_rule_picks_the_simplest_mode_the_scene_needs():
                   cfg)[0] == "homogeneous"
     assert decide({"3dgs": _score(30.0), "homogeneous": _score(30.1, 0.5), "dualphys": _score(31.0, 0.5)},
                   cfg)[0] == "dualphys"
-    # water learned, but no medium predicts the held-back views as well as 3dgs: invented water, 3dgs
-    mode, reason = decide({"3dgs": _score(22.67), "homogeneous": _score(22.30, 0.27),
-                           "dualphys": _score(22.40, 0.27)}, cfg)
-    assert mode == "3dgs" and "does not predict" in reason
+    # water learned, but every medium predicts the held-back views worse than 3dgs by more than the probe's
+    # noise: invented water, 3dgs (the generated seed-1 scene without water: -0.46 dB)
+    mode, reason = decide({"3dgs": _score(22.74), "homogeneous": _score(22.28, 0.22),
+                           "dualphys": _score(22.36, 0.22)}, cfg)
+    assert mode == "3dgs" and "more than the probe's noise" in reason
+    # water learned and the modes within the probe's noise of each other: a medium, whatever the order (the
+    # real RUIE A188 frames, three seeds: 3dgs ahead by 0.01-0.07 dB in two, behind by 0.12 dB in one)
+    for plain, homo, dual in ((25.57, 25.50, 25.69), (25.74, 25.67, 25.73), (25.52, 25.43, 25.49)):
+        mode, reason = decide({"3dgs": _score(plain), "homogeneous": _score(homo, 0.29),
+                               "dualphys": _score(dual, 0.29)}, cfg)
+        assert mode == "homogeneous", reason
 
 
 def _view(name: str, z: float) -> View:
