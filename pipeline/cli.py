@@ -45,14 +45,31 @@ def _positive(text: str) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from .config import SynthConfig
-    from .scene.synth import generate_scene
-
     w, h = args.size
-    cfg = SynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed, path=args.path)
     t0 = time.perf_counter()
-    out = generate_scene(cfg, args.out)
-    print(json.dumps({"out": str(out), "views": cfg.views, "preset": cfg.preset,
+    if args.family == "photo":
+        from .scene.synth_photo import PhotoSynthConfig, generate_photo_scene
+        from .scene.synth_photo_texture import TextureFolderError
+
+        if args.path != "survey":
+            print("dualphys synth: --path applies to the procedural family only (the photo family flies its "
+                  "own lawnmower + oblique survey)", file=sys.stderr)
+            return 2
+        photo = PhotoSynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed)
+        try:
+            out = generate_photo_scene(photo, args.out)
+        except TextureFolderError as e:
+            print(f"dualphys synth: {e}", file=sys.stderr)
+            return 1
+        views, preset = photo.views, photo.preset
+    else:
+        from .config import SynthConfig
+        from .scene.synth import generate_scene
+
+        cfg = SynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed, path=args.path)
+        out = generate_scene(cfg, args.out)
+        views, preset = cfg.views, cfg.preset
+    print(json.dumps({"out": str(out), "family": args.family, "views": views, "preset": preset,
                       "seconds": round(time.perf_counter() - t0, 2)}))
     return 0
 
@@ -255,8 +272,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--views", type=int, default=24)
     s.add_argument("--size", type=_size, default=(320, 240), help="WxH, e.g. 320x240")
     s.add_argument("--preset", default="medium", choices=["none", "clear", "medium", "turbid"])
-    s.add_argument("--path", default="survey", choices=["survey", "lawnmower", "forward"])
+    s.add_argument("--path", default="survey", choices=["survey", "lawnmower", "forward"],
+                   help="camera path of the procedural family")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--family", default="procedural", choices=["procedural", "photo"],
+                   help="procedural: bright procedural seabed, water per pixel (pipeline.scene.synth); photo: "
+                        "seabed from real photographs, water per supersample (pipeline.scene.synth_photo)")
     s.set_defaults(func=cmd_synth)
 
     s = sub.add_parser("sfm", help="structure from motion: images -> posed PINHOLE cameras + sparse points")
