@@ -83,7 +83,24 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "config": ev.get("config", {}),
         "outputs": {f: sum(1 for p in (out / f).glob("*.png")) for f in OUTPUT_FOLDERS if (out / f).is_dir()},
     }
-    return json_safe(report)
+    return json_safe(relative_paths(report, job))
+
+
+def relative_paths(value: Any, job: Path) -> Any:
+    """``value`` with every absolute path string made relative to the job folder (or cut to its own name when it
+    lies outside, e.g. ``dualphys run``'s input): the report travels to the service's clients, who must never
+    see the server's file system."""
+    if isinstance(value, dict):
+        return {k: relative_paths(v, job) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [relative_paths(v, job) for v in value]
+    if isinstance(value, str) and value.startswith("/") and "\n" not in value:
+        path, base = Path(value), job.resolve()
+        try:
+            return path.resolve().relative_to(base).as_posix()
+        except (ValueError, OSError):
+            return path.name
+    return value
 
 
 def validate_report(report: dict) -> None:

@@ -40,7 +40,7 @@ def build_services(settings: Settings) -> Services:
     coord = Coordinator.from_url(settings.redis_url, settings.redis_prefix)
     dispatcher = Dispatcher(create_celery(settings), settings.train_queue)
     registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,
-                              settings.survey_min_interval_s, settings.max_iterations)
+                              settings.survey_min_interval_s, settings.max_iterations, settings.survey_owner_roots)
     return Services(settings, coord, JobOps(store, coord, dispatcher), registry, ingest_slots=None)
 
 

@@ -78,6 +78,7 @@ def _survey_runtime(settings):
 
     rt = Runtime.create(settings, app)
     registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,
-                              settings.survey_min_interval_s, settings.max_iterations)
-    cfg = ScanConfig(min_images=settings.min_images, settle_s=settings.survey_settle_s, gap_s=settings.survey_gap_s)
+                              settings.survey_min_interval_s, settings.max_iterations, settings.survey_owner_roots)
+    cfg = ScanConfig(min_images=max(settings.min_images, settings.survey_min_images), settle_s=settings.survey_settle_s,
+                     gap_s=settings.survey_gap_s)
     return rt, registry, cfg

@@ -329,7 +329,7 @@ def test_survey_folder_yields_one_job_per_set_across_scans_and_a_beat_restart(li
     sid = alice.post("/v1/surveys", json={"path": str(reef), "interval_s": 1, "name": "reef"}).json()["id"]
     # a second survey from the config file, images directly in its folder (grouped by capture-time gaps)
     bobs = live.survey_root / "bob-site"
-    _write_set(bobs, 3, seed=200)
+    _write_set(bobs, 4, seed=200)
     (live.root / "surveys.toml").write_text(f'[[survey]]\nname = "bob-site"\npath = "{bobs}"\nowner = "bob"\n'
                                             f"interval_s = 1\n")
     beat = live.start_beat()
@@ -348,7 +348,7 @@ def test_survey_folder_yields_one_job_per_set_across_scans_and_a_beat_restart(li
         job = jobs["jobs"][0]
         assert job["source"]["set"] == "dive-01" and job["source"]["images"] == 4
         # a new set appears: exactly one more job, the first set is not submitted again
-        _write_set(reef / "dive-02", 3, seed=300)
+        _write_set(reef / "dive-02", 4, seed=300)
         n = scans()
         wait_for("a scan after the new set", lambda: scans() >= n + 1, timeout=60)
         sets = alice.get(f"/v1/surveys/{sid}").json()["sets"]

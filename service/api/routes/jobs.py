@@ -18,6 +18,7 @@ from service.api.schemas.requests import JobCreateOptions
 from service.api.schemas.responses import ErrorOut, JobList, JobOut, LogOut
 from service.dispatch import DispatchError
 from service.jobs import JobConflict, JobOps
+from service.redact import redact_paths
 from service.settings import Settings
 from service.store import JobNotFound, new_job_id
 from service.uploads import UploadError, check_declared_length, receive_upload
@@ -148,8 +149,9 @@ def _run_ingest(settings: Settings, job_dir: Path, archive: Path, opts: dict) ->
     try:
         result, _ = run_marked(job_dir, "ingest", stage_config(JobOptions.from_json(opts), "ingest"),
                                lambda: ingest(archive, job_dir, cfg).to_json())
-    except (ArchiveError, IngestError) as e:
-        raise UploadError(REFUSAL_STATUS.get(e.code, 422), e.code, str(e)) from None
+    except (ArchiveError, IngestError) as e:  # messages name members as in the archive; redacting is a safety net
+        raise UploadError(REFUSAL_STATUS.get(e.code, 422), e.code,
+                          redact_paths(str(e), job_dir, settings.data_dir)) from None
     return result, round(time.time() - t0, 3)
 
 

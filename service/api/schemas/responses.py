@@ -134,7 +134,11 @@ class SurveyOut(BaseModel):
     created_at: float
     last_scan_at: float | None
     scans: int
-    last_error: str | None
+    last_error: str | None = Field(..., description="why the last scan submitted nothing (folder replaced by a "
+                                                    "link, outside the roots, claimed by another owner ...)")
+    last_error_code: str | None = None
+    waiting: list[dict] = Field(default_factory=list, description="sets the last scan found but did not submit, "
+                                                                  "with the reason (too few images, settling)")
     sets: list[SubmittedSetOut]
 
 
