@@ -21,6 +21,7 @@ from svc_helpers import (
     MAX_ENTRIES,
     MAX_UPLOAD,
     METRICS,
+    encrypted_zip,
     job_log,
     job_status,
     small_jpegs,
@@ -173,6 +174,8 @@ def _tar(members: list[tuple[tarfile.TarInfo, bytes | None]]) -> bytes:
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w") as tf:
         for info, data in members:
+            if data is not None:
+                info.size = len(data)
             tf.addfile(info, io.BytesIO(data) if data is not None else None)
     return buf.getvalue()
 
@@ -184,6 +187,31 @@ def _tar_info(name: str, kind: bytes, link: str = "") -> tarfile.TarInfo:
 
 
 ESCAPE_NAME = f"dualphys-evil-{uuid.uuid4().hex[:8]}.jpg"
+
+
+def _dot_tar(files: dict[str, bytes], mode: str) -> bytes:
+    """What `tar cf x.tar -C images .` writes: a '.' member, then './'-prefixed names."""
+    import tempfile
+
+    buf = io.BytesIO()
+    with tempfile.TemporaryDirectory() as d:
+        for name, data in files.items():
+            (Path(d) / name).parent.mkdir(parents=True, exist_ok=True)
+            (Path(d) / name).write_bytes(data)
+        with tarfile.open(fileobj=buf, mode=mode) as tf:
+            tf.add(d, arcname=".")
+    return buf.getvalue()
+
+
+def _zip_method(data: bytes, method: int) -> bytes:
+    """A stored zip relabelled with another compression method (9: deflate64, which zipfile cannot decode)."""
+    out = bytearray(data)
+    for sig, at in ((b"PK\x03\x04", 8), (b"PK\x01\x02", 10)):
+        i = out.find(sig)
+        while i >= 0:
+            out[i + at:i + at + 2] = method.to_bytes(2, "little")
+            i = out.find(sig, i + 4)
+    return bytes(out)
 
 
 def hostile_cases() -> dict[str, tuple]:
@@ -230,10 +258,33 @@ def hostile_cases() -> dict[str, tuple]:
         "wrong_content_type": (b'{"images": []}', "application/json", 415, "unsupported_media_type"),
         "malformed_multipart": (b"--nope\r\nnot really\r\n", "multipart/form-data; boundary=zzz", 400,
                                 "malformed_multipart"),
+        # issue 13
+        "encrypted_zip": (encrypted_zip(good), None, 422, "encrypted_archive"),
+        "encrypted_zip_raw_body": (encrypted_zip(good, b"pw"), "application/zip", 422, "encrypted_archive"),
+        "deflate64_zip": (_zip_method(full, 9), None, 422, "unsupported_compression"),
+        "dot_slash_tar_gz": (_dot_tar(good, "w:gz"), "application/gzip", 201, None),
+        "dot_slash_tar": (_dot_tar(good, "w"), "application/x-tar", 201, None),
+        "dot_slash_escape": (_tar([(_tar_info(".", tarfile.DIRTYPE), None)]
+                                  + [(_sized(f"./{n}"), d) for n, d in good.items()]
+                                  + [(_sized(f"./../{ESCAPE_NAME}"), jpeg)]), "application/x-tar", 422, "path_escape"),
+        "dot_slash_regular_file": (_tar([(_sized(f"./{n}"), d) for n, d in good.items()] + [(_sized("./"), b"x")]),
+                                   "application/x-tar", 422, "bad_name"),
+        "over_long_member_name": (zip_bytes({**good, "a" * 300 + ".jpg": jpeg}), None, 422, "name_too_long"),
+        "over_long_member_path": (zip_bytes({**good, "/".join(["d" * 200] * 6) + "/x.jpg": jpeg}), None,
+                                  422, "name_too_long"),
+        "file_field_not_archive": (full, "field:file", 400, "unexpected_file"),
+        "unknown_file_field": (full, "field:upload", 400, "unexpected_file"),
     }
 
 
+def _sized(name: str) -> tarfile.TarInfo:
+    info = tarfile.TarInfo(name)
+    info.type = tarfile.REGTYPE
+    return info
+
+
 CASES = hostile_cases()
+assert len(CASES) >= 30  # issue 13: the suite covers at least 30 hostile or broken uploads
 
 
 def _snapshot(root: Path) -> set[str]:
@@ -254,11 +305,14 @@ def test_hostile_or_broken_upload(live, hostile_baseline, case: str) -> None:
     before = _snapshot(live.root)
     if ctype is None:
         r = upload(c, body, filename=f"{case}.zip")
+    elif ctype.startswith("field:"):
+        r = c.post("/v1/jobs", files={ctype[6:]: (f"{case}.zip", body, "application/zip")})
     else:
         r = c.post("/v1/jobs", content=body, headers={"Content-Type": ctype})
     assert r.status_code == status, r.text
     if code is not None:
         assert r.json()["error"]["code"] == code and r.json()["error"]["message"], r.text
+    assert str(live.root) not in r.text and "/jobs/" not in r.text  # no server path in any answer
     new = _snapshot(live.root) - before
     new_jobs = set(os.listdir(live.data_dir / "jobs")) - existing_jobs
     if status == 201:
