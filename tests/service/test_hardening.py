@@ -174,3 +174,33 @@ def test_survey_jobs_show_ingest_distinct_names_and_small_sets_wait(live) -> Non
     finally:
         _cancel_survey_jobs(alice, sid)
         shutil.rmtree(site, ignore_errors=True)
+
+
+# ---------------------------------------------------------------- item 8: idempotency keys
+
+
+@pytest.mark.timeout(120)
+def test_idempotency_key_checks_the_request_and_survives_redis_losing_it(live, redis_client) -> None:
+    c = live.client("alice")
+    archive = zip_bytes({f"{i}.jpg": b for i, b in enumerate(small_jpegs(4, seed=900))})
+    other = zip_bytes({f"{i}.jpg": b for i, b in enumerate(small_jpegs(4, seed=910))})
+    key = {"Idempotency-Key": f"nightly-{time.time_ns()}"}
+    first = upload(c, archive, headers=key, preset="fast")
+    assert first.status_code == 201, first.text
+    jid = first.json()["id"]
+    c.post(f"/v1/jobs/{jid}/cancel")
+    total = c.get("/v1/jobs", params={"limit": 1}).json()["total"]
+    again = upload(c, archive, headers=key, preset="fast")
+    assert again.status_code == 200 and again.json()["id"] == jid
+    for r in (upload(c, other, headers=key, preset="fast"), upload(c, archive, headers=key, preset="balanced")):
+        assert r.status_code == 422 and r.json()["error"]["code"] == "idempotency_key_reused", r.text
+        assert jid in r.json()["error"]["message"]
+    # Redis loses its data (here: the key's entry): the record kept with the jobs on disk still answers
+    lost = [k for k in redis_client.scan_iter(match=f"{live.prefix}:idem:*")]
+    assert lost
+    redis_client.delete(*lost)
+    after = upload(c, archive, headers=key, preset="fast")
+    assert after.status_code == 200 and after.json()["id"] == jid, after.text
+    assert c.get("/v1/jobs", params={"limit": 1}).json()["total"] == total
+    assert not [p for p in (live.data_dir / "jobs").iterdir() if not (p / "manifest.json").exists()
+                and p.name.startswith("j")]  # the repeats' bodies were not kept
