@@ -46,6 +46,7 @@ class StatusView:
     stage: str | None
     progress: float
     message: str
+    worker_lost: bool = False
 
 
 class JobOps:
@@ -138,7 +139,30 @@ class JobOps:
             progress = 100.0
         if m.state == "running" and m.cancel_requested:
             state = "cancelling"
-        return StatusView(m, state, stage, round(progress, 2), message)
+        lost = self._worker_lost(m)
+        if lost:
+            message = self._lost_message(m, message)
+        return StatusView(m, state, stage, round(progress, 2), message, lost)
+
+    def _worker_lost(self, m: Manifest) -> bool:
+        """A stage recorded as running whose run lock is gone: the runner holds the lock from before it records
+        ``running`` until after it records the end, so its worker died (the lock expired, ``lock_ttl_s``)."""
+        if m.state != "running" or m.current_stage is None or m.stage(m.current_stage).status != "running":
+            return False
+        try:
+            return not self.coord.run_lock_held(m.id)
+        except Exception as e:  # the cache is away: say nothing rather than something wrong
+            log.warning("cannot read the run lock: %s", e)
+            return False
+
+    def _lost_message(self, m: Manifest, last: str) -> str:
+        stage = m.current_stage
+        rec = m.stage(stage)
+        ckpt = self.store.last_checkpoint_iteration(m.id) if stage == "train" else None
+        resume = f"from checkpoint {ckpt}" if ckpt is not None else "from the start of the stage"
+        was = f" at '{last}'" if last else ""
+        return (f"worker lost during {stage} (attempt {rec.attempts}){was}; retrying {resume} when the task is "
+                f"delivered again")
 
     # ---- cancel / retry / delete
     def cancel(self, job_id: str, owner: str) -> Manifest:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 from service.coord import Coordinator, RunLock
 from service.jobs import JobOps, pipeline_stages
-from service.manifest import TERMINAL_STATES, JobError, Manifest, overall_progress
+from service.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, overall_progress
 from service.redact import redact_paths
 from service.settings import Settings
 from service.store import LOG_NAME, JobNotFound, JobStore
@@ -114,9 +114,15 @@ def _execute_locked(rt: Runtime, job_id: str, stage: str, run_id: str, lock: Run
                 _finish(m, "cancelled", None, "cancelled before " + stage)
                 rt.store.write(m)
                 return Outcome("cancelled")
+            if rec.status == "running":  # the previous attempt's worker died: keep that attempt in the record
+                rec.history.append(AttemptRecord(attempt=rec.attempts, started_at=rec.started_at,
+                                                 ended_at=m.updated_at, outcome="worker_lost", last=m.message))
+                log.warning("job %s: the worker running %s died (attempt %d, last: %s)", job_id, stage,
+                            rec.attempts, m.message or "-")
             if rec.status == "running" and rec.attempts >= rt.settings.max_stage_attempts:
                 msg = f"the worker died {rec.attempts} times while running {stage}"
                 _finish(m, "failed", JobError(stage=stage, code="worker_lost", message=msg), msg)
+                rec.status, rec.finished_at = "failed", time.time()
                 rt.store.write(m)
                 return Outcome("failed", detail=msg)
             rec.status, rec.started_at, rec.finished_at, rec.seconds = "running", time.time(), None, None
@@ -190,6 +196,8 @@ def _record_end(rt: Runtime, job_id: str, run_id: str, stage: str, status: str, 
             return Outcome("stale", detail="run superseded while running")
         rec = m.stage(stage)
         rec.status, rec.finished_at, rec.seconds, rec.skipped = status, time.time(), round(seconds, 3), skipped
+        rec.history.append(AttemptRecord(attempt=rec.attempts, started_at=rec.started_at, ended_at=rec.finished_at,
+                                         outcome=status, last=message or m.message))
         if stage == "ingest" and status == "done" and m.ingest is None:
             m.ingest = _read_ingest(rt.store.job_dir(job_id))  # survey jobs: the worker ran ingest, not the API
         done = {s for s in stages if m.stage(s).status == "done"}

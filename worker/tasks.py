@@ -6,14 +6,21 @@ from __future__ import annotations
 import logging
 import time
 
+from celery.signals import worker_ready, worker_shutdown
+
 from service.dispatch import RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK, Dispatcher
 from service.settings import load_settings
 
 from .app import app
+from .heartbeat import on_worker_ready, on_worker_shutdown
 from .process import prepare_stage_process
 from .runner import Runtime, execute_stage
 
 log = logging.getLogger(__name__)
+
+# the worker's main process announces itself in Redis for /ready (worker.heartbeat); weak=False: module functions
+worker_ready.connect(on_worker_ready, weak=False)
+worker_shutdown.connect(on_worker_shutdown, weak=False)
 
 
 @app.task(name=RUN_STAGE_TASK, bind=True, acks_late=True, reject_on_worker_lost=True, max_retries=None,

@@ -71,7 +71,21 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
     assert 0 < ckpt < ITERATIONS
     worker.kill9()
     assert not worker.alive()
+    # issue 13, item 6: the status says the worker is gone (once its job lock expired, lock_ttl_s = 5 s here)
+    # and from where the stage resumes; /ready says nobody consumes the queues (heartbeat TTL 15 s)
+    lost = wait_for("the status to show the lost worker", lambda: (s if (s := job_status(c, jid))["worker_lost"]
+                                                                   else None), timeout=30)
+    assert lost["state"] == "running" and lost["stage"] == "train", lost
+    assert re.match(r"worker lost during train \(attempt 1\) at '.*'; retrying from checkpoint (\d+)",
+                    lost["message"]), lost["message"]
+    assert int(re.search(r"checkpoint (\d+)", lost["message"])[1]) >= ckpt
+    ready = wait_for("/ready to miss the worker", lambda: (r if not (r := httpx.get(f"{live.url}/ready").json())
+                                                           ["workers_ok"] else None), timeout=40)
+    assert ready["workers"]["cpu"] == 0 and "no worker consumes the 'cpu' queue" in ready["warnings"], ready
     live.start_worker()
+    ready = wait_for("/ready to see the new worker", lambda: (r if (r := httpx.get(f"{live.url}/ready").json())
+                                                              ["workers_ok"] else None), timeout=30)
+    assert ready["workers"] == {"cpu": 1, "gpu": 0, "surveys": 1}, ready
     final = wait_job(c, jid, {"done", "failed", "cancelled"}, timeout=240,
                      on_poll=lambda s: progress.append(s["progress"]))
     progress.append(final["progress"])
@@ -83,6 +97,10 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
     # exactly one completed run; the train stage ran twice (the killed attempt and the resumed one)
     assert final["completed_runs"] == 1 and [r["outcome"] for r in final["runs"]] == ["done"]
     assert stage(final, "train")["attempts"] == 2 and stage(final, "sfm")["attempts"] == 1
+    # every attempt stays in the stage's record: the lost one with its last progress message, then the one that ran
+    assert [(a["attempt"], a["outcome"]) for a in stage(final, "train")["history"]] == [(1, "worker_lost"),
+                                                                                         (2, "done")]
+    assert "iteration" in stage(final, "train")["history"][0]["last"]
     assert all(s["status"] == "done" and s["seconds"] is not None for s in final["stages"])
     # training resumed from the checkpoint it had written before the kill, and continued from there
     log = job_log(c, jid)
