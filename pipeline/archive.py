@@ -7,18 +7,24 @@ and again while streaming each member (declared sizes can lie), so a refused arc
 
 from __future__ import annotations
 
+import errno
+import lzma
 import os
 import shutil
 import stat
 import tarfile
 import unicodedata
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 NESTED_ARCHIVE_SUFFIXES = (".zip", ".tar", ".tgz", ".tar.gz", ".tbz2", ".tar.bz2", ".txz", ".tar.xz", ".gz",
                            ".bz2", ".xz", ".7z", ".rar")
 CHUNK = 1 << 20
+NAME_MAX_BYTES = 255  # one path component, in UTF-8 bytes (Linux NAME_MAX; most file systems agree)
+PATH_MAX_BYTES = 1024  # a whole member name (Linux allows 4096; no sane image set needs a quarter of it)
+ZIP_ENCRYPTED = 0x1  # general purpose bit 0 of a zip entry: the data is encrypted
 
 
 @dataclass(frozen=True)
@@ -45,18 +51,32 @@ class Extracted:
     ignored: list[tuple[str, str]]  # (member name, why) for members skipped without refusing the archive
 
 
-def safe_member_path(name: str) -> PurePosixPath:
-    """Validate a member name and return it as a relative POSIX path; refuse escapes and absolute paths."""
+def _shown(name: str, limit: int = 120) -> str:
+    """A member name as a message quotes it: repr, cut to ``limit`` characters (names can be 4 KiB long)."""
+    text = repr(name)
+    return text if len(text) <= limit else text[:limit - 5] + "...'"
+
+
+def safe_member_path(name: str, is_dir: bool = False) -> PurePosixPath | None:
+    """Validate a member name and return it as a relative POSIX path; refuse escapes, absolute paths and names
+    too long for the file system. ``./`` prefixes are dropped (``tar -C dir .`` writes every member so); the
+    archive's own root folder (``.`` or ``./``, a directory) gives None: nothing to create."""
     if "\x00" in name:
-        raise ArchiveError("bad_name", f"archive member name contains a NUL byte: {name!r}")
+        raise ArchiveError("bad_name", f"archive member name contains a NUL byte: {_shown(name)}")
     norm = unicodedata.normalize("NFC", name.replace("\\", "/"))
     if norm.startswith("/") or (len(norm) > 1 and norm[1] == ":"):
-        raise ArchiveError("absolute_path", f"archive member has an absolute path: {name!r}")
+        raise ArchiveError("absolute_path", f"archive member has an absolute path: {_shown(name)}")
     parts = [p for p in PurePosixPath(norm).parts if p not in ("", ".")]
     if any(p == ".." for p in parts):
-        raise ArchiveError("path_escape", f"archive member escapes the upload folder: {name!r}")
+        raise ArchiveError("path_escape", f"archive member escapes the upload folder: {_shown(name)}")
     if not parts:
-        raise ArchiveError("bad_name", f"archive member has an empty name: {name!r}")
+        if is_dir:
+            return None
+        raise ArchiveError("bad_name", f"archive member has an empty name: {_shown(name)}")
+    if any(len(p.encode("utf-8", "surrogateescape")) > NAME_MAX_BYTES for p in parts) \
+            or len("/".join(parts).encode("utf-8", "surrogateescape")) > PATH_MAX_BYTES:
+        raise ArchiveError("name_too_long", f"archive member name is too long (at most {NAME_MAX_BYTES} bytes "
+                                            f"per folder or file name, {PATH_MAX_BYTES} in all): {_shown(name)}")
     return PurePosixPath(*parts)
 
 
@@ -90,9 +110,22 @@ def extract_archive(archive: Path, target: Path, limits: ArchiveLimits = Archive
     except ArchiveError:
         shutil.rmtree(target, ignore_errors=True)
         raise
-    except (zipfile.BadZipFile, tarfile.TarError, EOFError, OSError) as e:
+    except OSError as e:
+        shutil.rmtree(target, ignore_errors=True)
+        if e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EROFS):
+            raise  # the server's disk, not the upload: an error of ours, not a refusal
+        if e.errno == errno.ENAMETOOLONG:
+            raise ArchiveError("name_too_long", "an archive member's name is too long for the file system") from e
+        # e.strerror only: str(e) would quote the server-side path being written
+        raise ArchiveError("corrupt_archive", f"the archive is damaged or truncated: {e.strerror or 'read error'}") \
+            from e
+    except (zipfile.BadZipFile, tarfile.TarError, EOFError, zlib.error, lzma.LZMAError) as e:
         shutil.rmtree(target, ignore_errors=True)
         raise ArchiveError("corrupt_archive", f"the archive is damaged or truncated: {e}") from e
+    except NotImplementedError as e:  # zipfile: a compression method it cannot decode (deflate64, AES ...)
+        shutil.rmtree(target, ignore_errors=True)
+        raise ArchiveError("unsupported_compression", f"the archive uses a compression method this server cannot "
+                                                      f"read ({e}); use deflate, or a tar") from e
 
 
 def _check_counts(n: int, total: int, limits: ArchiveLimits) -> None:
@@ -107,18 +140,19 @@ def _plan(names_sizes: list[tuple[str, int, bool]], limits: ArchiveLimits, ignor
     seen: dict[str, str] = {}
     plan: list[PurePosixPath | None] = []
     for name, size, is_dir in names_sizes:
-        rel = safe_member_path(name)
-        if is_dir:
+        rel = safe_member_path(name, is_dir)
+        if is_dir or rel is None:
             plan.append(None)
             continue
         if size > limits.max_file_bytes:
             raise ArchiveError("file_too_large",
-                               f"{name!r} unpacks to {size} bytes; the limit is {limits.max_file_bytes}")
+                               f"{_shown(name)} unpacks to {size} bytes; the limit is {limits.max_file_bytes}")
         if _is_nested_archive(rel):
-            raise ArchiveError("nested_archive", f"archives inside the archive are not accepted: {name!r}")
+            raise ArchiveError("nested_archive", f"archives inside the archive are not accepted: {_shown(name)}")
         key = str(rel).casefold()
         if key in seen:
-            raise ArchiveError("duplicate_name", f"the archive holds two files named {seen[key]!r} and {name!r}")
+            raise ArchiveError("duplicate_name",
+                               f"the archive holds two files named {_shown(seen[key])} and {_shown(name)}")
         seen[key] = name
         if rel.name.startswith(".") or "__MACOSX" in rel.parts:
             ignored.append((name, "hidden or system file"))
@@ -151,13 +185,16 @@ def _extract_zip(archive: Path, target: Path, limits: ArchiveLimits) -> Extracte
         if sum(i.file_size for i in infos) / compressed > limits.max_ratio:
             raise ArchiveError("compression_bomb", "the archive's compression ratio is implausibly high")
         for i in infos:
+            if i.flag_bits & ZIP_ENCRYPTED:  # zipfile would raise RuntimeError("... password required ...")
+                raise ArchiveError("encrypted_archive", f"the archive is password-protected ({_shown(i.filename)} is "
+                                                        f"encrypted); upload it without a password")
             mode = (i.external_attr >> 16) & 0xFFFF
             if stat.S_ISLNK(mode):
-                raise ArchiveError("link", f"links are not accepted in uploads: {i.filename!r}")
+                raise ArchiveError("link", f"links are not accepted in uploads: {_shown(i.filename)}")
             if stat.S_IFMT(mode) and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # type bits are optional
-                raise ArchiveError("special_file", f"special files are not accepted: {i.filename!r}")
+                raise ArchiveError("special_file", f"special files are not accepted: {_shown(i.filename)}")
             if i.file_size > 1 << 16 and i.file_size / max(1, i.compress_size) > limits.max_ratio:
-                raise ArchiveError("compression_bomb", f"{i.filename!r} has an implausible compression ratio")
+                raise ArchiveError("compression_bomb", f"{_shown(i.filename)} has an implausible compression ratio")
         plan = _plan([(i.filename, i.file_size, i.is_dir()) for i in infos], limits, ignored)
         files, budget = [], [0]
         for info, rel in zip(infos, plan):
@@ -177,9 +214,9 @@ def _extract_tar(archive: Path, target: Path, limits: ArchiveLimits) -> Extracte
         _check_counts(len(members), sum(m.size for m in members if m.isfile()), limits)
         for m in members:
             if m.issym() or m.islnk():
-                raise ArchiveError("link", f"links are not accepted in uploads: {m.name!r}")
+                raise ArchiveError("link", f"links are not accepted in uploads: {_shown(m.name)}")
             if not (m.isfile() or m.isdir()):
-                raise ArchiveError("special_file", f"special files are not accepted: {m.name!r}")
+                raise ArchiveError("special_file", f"special files are not accepted: {_shown(m.name)}")
         compressed = max(1, archive.stat().st_size)
         total = sum(m.size for m in members if m.isfile())
         if total > 1 << 20 and total / compressed > limits.max_ratio:
@@ -191,7 +228,7 @@ def _extract_tar(archive: Path, target: Path, limits: ArchiveLimits) -> Extracte
                 continue
             src = tf.extractfile(m)
             if src is None:
-                raise ArchiveError("special_file", f"cannot read archive member {m.name!r}")
+                raise ArchiveError("special_file", f"cannot read archive member {_shown(m.name)}")
             with src:
                 _copy_limited(src, _destination(target, rel), m.size, limits, budget)
             files.append(rel)

@@ -257,7 +257,12 @@ def cmd_train_classifier(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     from service.embedded import serve
 
-    serve(args.host, args.port, args.data_dir, redis_url=args.redis_url)
+    try:
+        serve(args.host, args.port, args.data_dir, redis_url=args.redis_url, api_keys_file=args.api_keys_file,
+              worker_concurrency=args.workers, beat=not args.no_beat, log_level=args.log_level)
+    except (RuntimeError, ValueError, OSError) as e:  # no Redis, unreadable keys: a message, not a traceback
+        print(f"dualphys serve: {e}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -291,11 +296,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_train_classifier)
 
-    s = sub.add_parser("serve", help="run the API, a worker and beat locally against a Redis on localhost")
-    s.add_argument("--host", default="127.0.0.1")
-    s.add_argument("--port", type=int, default=8000)
-    s.add_argument("--data-dir", type=Path, default=Path("dualphys-data"))
-    s.add_argument("--redis-url", default="redis://127.0.0.1:6379/0")
+    s = sub.add_parser("serve", help="run the API, a worker and beat locally against a Redis on localhost",
+                       description="Run the API, a Celery worker and beat on this machine. Every DUALPHYS_* "
+                                   "setting of docs/SERVICE.md applies; a flag given here wins over its variable. "
+                                   "Ctrl-C or SIGTERM stops all three.")
+    s.add_argument("--host", default="127.0.0.1", help="address the API listens on (default: 127.0.0.1)")
+    s.add_argument("--port", type=int, default=8000, help="port the API listens on (default: 8000)")
+    s.add_argument("--data-dir", type=Path, default=None,
+                   help="job folders, survey state, beat schedule (default: $DUALPHYS_DATA_DIR, else ./dualphys-data)")
+    s.add_argument("--redis-url", default=None,
+                   help="broker, locks and cache (default: $DUALPHYS_REDIS_URL, else redis://127.0.0.1:6379/0)")
+    s.add_argument("--api-keys-file", type=Path, default=None,
+                   help='JSON file {"<key>": "<owner>", ...} (default: $DUALPHYS_API_KEYS, else one key for owner '
+                        "'local', written to <data-dir>/api-key)")
+    s.add_argument("--workers", type=_positive, default=1, help="worker processes running stages (default: 1)")
+    s.add_argument("--no-beat", action="store_true", help="run no celery beat: survey folders are not scanned")
+    s.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
+                   help="log level of the API, the worker and beat (default: info)")
     s.set_defaults(func=cmd_serve)
 
     s = sub.add_parser("demo", help="generate a scene and run the pipeline on it end to end")

@@ -111,8 +111,8 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
             continue
         try:
             px = read_pixels(path)  # full decode: catches truncated and corrupt files
-        except ImageReadError as e:
-            skipped.append({"file": str(rel), "reason": e.reason})
+        except ImageReadError as e:  # the decoder's message may quote the server-side path: name it as the user did
+            skipped.append({"file": str(rel), "reason": _without_paths(e.reason, {path: rel, root: None})})
             continue
         fmt, orientation = _probe(path)
         stem = Path(safe_name(rel)).stem
@@ -127,7 +127,7 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
         written[name] = str(rel)
     if unpacked.exists():
         shutil.rmtree(unpacked)
-    result = IngestResult(sorted(written), skipped, ignored, str(source))
+    result = IngestResult(sorted(written), skipped, ignored, shown_source(source, job_dir))
     if len(written) < cfg.min_images:
         why = f"{len(written)} usable image(s) found; at least {cfg.min_images} are needed"
         if skipped:
@@ -136,6 +136,22 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     (job_dir / "ingest.json").write_text(json.dumps(result.to_json(), indent=2))
     log.info("ingest: %d images, %d skipped, %d ignored", len(written), len(skipped), len(ignored))
     return result
+
+
+def shown_source(source: Path, job_dir: Path) -> str:
+    """How ``ingest.json`` names the input: relative to the job folder when it lies inside (an upload, a survey
+    set's copy), else its own name. Never an absolute path: ingest.json is handed to the service's clients."""
+    try:
+        return Path(source).resolve().relative_to(Path(job_dir).resolve()).as_posix()
+    except ValueError:
+        return Path(source).name
+
+
+def _without_paths(text: str, paths: dict[Path, Path | None]) -> str:
+    """``text`` with each absolute path in ``paths`` replaced by its relative name (or removed, for None)."""
+    for path, rel in paths.items():
+        text = text.replace(str(path) + "/", "" if rel is None else f"{rel}/").replace(str(path), str(rel or "."))
+    return text
 
 
 def _unique(name: str, taken: dict[str, str]) -> str:

@@ -121,8 +121,50 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "model": model,
         "config": ev.get("config", {}),
         "outputs": {f: sum(1 for p in (out / f).glob("*.png")) for f in OUTPUT_FOLDERS if (out / f).is_dir()},
+        "input": input_summary(job, options),
+        "sfm": sfm_summary(job),
     }
-    return json_safe(report)
+    return json_safe(relative_paths(report, job))
+
+
+SFM_FIELDS = ("registered", "total", "mean_reproj_error_px", "num_points3D", "matcher")
+
+
+def input_summary(job: Path, options: dict) -> dict[str, Any]:
+    """What went in: the input's name (``source.json``'s ``name`` when the service wrote one, e.g. the uploaded
+    file's name; else the source's own name), the images ingest kept and the files it skipped."""
+    ingested = _read_json(job / "ingest.json") or {}
+    named = _read_json(job / "source.json") or {}
+    name = named.get("name") or Path(str(options.get("source", "") or ingested.get("source", ""))).name
+    return {"name": name or None, "images": len(ingested.get("images", [])) if ingested else None,
+            "skipped": len(ingested.get("skipped", [])) if ingested else None}
+
+
+def sfm_summary(job: Path) -> dict[str, Any] | None:
+    """The SfM stage's summary from its completion marker: registered / total images, mean reprojection error,
+    points, matcher (None when the stage has not run)."""
+    from .stages import read_marker
+
+    marker = read_marker(job, "sfm")
+    result = (marker or {}).get("result") or {}
+    return {k: result.get(k) for k in SFM_FIELDS} if result else None
+
+
+def relative_paths(value: Any, job: Path) -> Any:
+    """``value`` with every absolute path string made relative to the job folder (or cut to its own name when it
+    lies outside, e.g. ``dualphys run``'s input): the report travels to the service's clients, who must never
+    see the server's file system."""
+    if isinstance(value, dict):
+        return {k: relative_paths(v, job) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [relative_paths(v, job) for v in value]
+    if isinstance(value, str) and value.startswith("/") and "\n" not in value:
+        path, base = Path(value), job.resolve()
+        try:
+            return path.resolve().relative_to(base).as_posix()
+        except (ValueError, OSError):
+            return path.name
+    return value
 
 
 def validate_report(report: dict) -> None:
@@ -155,8 +197,11 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
     down = int(report["model"].get("downscale", 1))
     rest = report["restoration"]
     views = []
+    restored = report["mode"] != "3dgs"  # 3dgs models no water: its "restored" image is the model, not a restoration
     if rest is not None:  # the true cameras: photo, model, restored and truth share one geometry
-        gt = load_ground_truth(rest["ground_truth"])
+        # the report names the ground truth without its server path; evaluate.json has the real one
+        gt = load_ground_truth(((_read_json(job / "evaluate.json") or {}).get("restoration") or {}).get(
+            "ground_truth", rest["ground_truth"]))
         true_views = {v.name: scaled_view(v, down) for v in gt.scene.views}
         for n in (n for n in names if n in rest["views"]):
             v, stem = true_views[n], Path(n).stem
@@ -165,6 +210,7 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
                      ("model, with water", (job / TRUE_CAMERA_DIR / "with_water" / f"{stem}.png").read_bytes()),
                      ("restored J", (job / TRUE_CAMERA_DIR / "restored" / f"{stem}.png").read_bytes()),
                      ("ground truth J", image_png(gt.clean(v)))]
+            cells = [c for c in cells if restored or c[0] != "restored J"]
             views.append((n, cells))
     else:
         _, test = split_views(load_scene(job / "scene").views)
@@ -172,8 +218,8 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
         for n in (n for n in names if n in by_name):
             stem = Path(n).stem
             views.append((n, [("photo", image_png(load_view_image(by_name[n]))),
-                              ("model, with water", (out / "with_water" / f"{stem}.png").read_bytes()),
-                              ("restored J", (out / "restored" / f"{stem}.png").read_bytes())]))
+                              ("model, with water", (out / "with_water" / f"{stem}.png").read_bytes())]
+                          + ([("restored J", (out / "restored" / f"{stem}.png").read_bytes())] if restored else [])))
     maps = []
     depths = {n: np.load(out / "depth" / f"{Path(n).stem}.npy") for n in names
               if (out / "depth" / f"{Path(n).stem}.npy").is_file()}

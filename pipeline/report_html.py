@@ -56,13 +56,18 @@ def _figures(cells: list[tuple[str, bytes]]) -> str:
         for label, png in cells) + "</div>"
 
 
+def no_water_removed(r: dict) -> bool:
+    """Mode ``3dgs`` models no water: nothing was removed, whatever ``restored/`` holds (the model itself)."""
+    return r["mode"] == "3dgs"
+
+
 def _kpis(r: dict) -> str:
     t, rest = r["metrics"]["test"], r["restoration"]
     water = r["water"]["water_type"] if r["water"] else None
     items = [("mode", r["mode"]), ("preset", r["preset"]), ("water", water),
-             ("held-out PSNR", f"{fmt(t['psnr'])} dB"), ("held-out SSIM", fmt(t["ssim"], 3)),
+             (f"held-out PSNR ({t['n_views']} views)", f"{fmt(t['psnr'])} dB"), ("held-out SSIM", fmt(t["ssim"], 3)),
              ("LPIPS", fmt(t["lpips"], 3))]
-    if rest is not None:
+    if rest is not None and not no_water_removed(r):
         items.append(("restored J PSNR vs truth", f"{fmt(rest['restored']['psnr'])} dB"))
     items += [("Gaussians", r["model"]["n_gaussians"]), ("total time", f"{fmt(r['timings']['total_s'], 0)} s")]
     return '<div class="head">' + "".join(f'<div class="kpi"><span class="muted">{escape(k)}</span>'
@@ -70,7 +75,41 @@ def _kpis(r: dict) -> str:
                                           for k, v in items) + "</div>"
 
 
-def _restoration(rest: dict | None) -> str:
+def _inputs(r: dict) -> str:
+    """The input's name and image count, and the SfM summary (registered / total, reprojection error, matcher)."""
+    inp, sfm = r.get("input") or {}, r.get("sfm")
+    skipped = f", {inp['skipped']} undecodable file(s) skipped" if inp.get("skipped") else ""
+    html = (f"<h2>Input and camera poses</h2><p>Input <b>{fmt(inp.get('name'))}</b>: {fmt(inp.get('images'))} "
+            f"images{skipped}.</p>")
+    if not sfm:
+        return html + "<p class=muted>No SfM summary (the sfm stage has not run).</p>"
+    return html + (f"<p>SfM registered <b>{fmt(sfm['registered'])} of {fmt(sfm['total'])}</b> images, mean "
+                   f"reprojection error {fmt(sfm['mean_reproj_error_px'], 3)} px, {fmt(sfm['num_points3D'])} "
+                   f"points, {fmt(sfm['matcher'])} matching.</p>")
+
+
+def _selection(r: dict) -> str:
+    """The mode decision with the water-type decision beside it, and what the mode means for restoration."""
+    sel, w = r["selection"], r["water"]
+    water = (f"Water classified <b>{escape(w['water_type'])}</b>"
+             + (f" (p = {w['probabilities'][w['water_type']]:.2f})" if w.get("probabilities", {}).get(
+                 w["water_type"]) is not None else "") + "." if w else "Water type not classified.")
+    html = f"<h2>Model selection</h2><p>Mode <b>{escape(sel['mode'])}</b>: {escape(sel['reason'])}. {water}</p>"
+    if no_water_removed(r):
+        html += ("<p><b>No water was removed.</b> Mode 3dgs fits the photos as they are, with no model of the "
+                 "water, so there is no restored image J; the views below show the model with the water in them"
+                 + (f" (the mode was chosen because: {escape(sel['reason'])})" if sel.get("reason") else "")
+                 + ".</p>")
+    return html
+
+
+def _restoration(rest: dict | None, r: dict | None = None) -> str:
+    if rest is not None and r is not None and no_water_removed(r):
+        rows = [[label, rest[k]["psnr"], rest[k]["ssim"], rest[k]["lpips"]] for label, k in (
+            ("photo vs true clean J", "input"), ("model with water vs photo (alignment check)", "with_water"))]
+        return ("<h2>Restoration against ground truth</h2><p>No water was removed (mode 3dgs), so there is no "
+                "restored J to score; the photos themselves against the true clean images:</p>"
+                + table(["comparison", "PSNR (dB)", "SSIM", "LPIPS"], rows, 3))
     if rest is None:
         return "<h2>Restoration</h2><p class=muted>No ground truth for this job (only generated scenes have it).</p>"
     rows = [[label, rest[k]["psnr"], rest[k]["ssim"], rest[k]["lpips"]] for label, k in (
@@ -112,6 +151,22 @@ def _restoration(rest: dict | None) -> str:
         ["at the camera alignment's scale", d["at_alignment_scale"]["abs_error_m"],
          d["at_alignment_scale"]["rel_error"], d["at_alignment_scale"]["n_pixels"]]], 3)
     return html
+
+
+def _curve_vs_header(r: dict) -> str:
+    """Say how the curve's last point relates to the header's held-out PSNR: the same number, or two scores
+    of two view sets / renders, each named."""
+    pts, t = r["speed_vs_error"]["points"], r["metrics"]["test"]
+    if not pts or t["psnr"] is None:
+        return ""
+    last = pts[-1]
+    same_views = sorted(r["speed_vs_error"]["views"]) == sorted(t["views"])
+    if same_views and abs(last["psnr"] - t["psnr"]) < 0.005:
+        return f" Its last point ({fmt(last['psnr'])} dB) is the header's held-out PSNR."
+    return (f" Its last point (iteration {last['iteration']}: {fmt(last['psnr'])} dB, training's check on "
+            f"{len(r['speed_vs_error']['views'])} views: {escape(', '.join(r['speed_vs_error']['views']))}) is "
+            f"not the header's held-out PSNR ({fmt(t['psnr'])} dB, the evaluate stage on {t['n_views']} views: "
+            f"{escape(', '.join(t['views']))}).")
 
 
 def _water(w: dict | None) -> str:
@@ -182,19 +237,18 @@ def _quality(q: dict | None) -> str:
 def render_html(r: dict, pics: Pictures) -> str:
     """The page for report ``r`` with ``pics`` embedded."""
     t = r["metrics"]["test"]
-    sel = r["selection"]
     parts = [f"<h1>dualphys report: {escape(r['job']['name'])}</h1>",
              f"<p class=muted>created {escape(r['created_at'])}; report schema {r['schema_version']}</p>",
              _quality(r.get("quality")),
-             _kpis(r),
-             f"<h2>Model selection</h2><p>Mode <b>{escape(sel['mode'])}</b>: {escape(sel['reason'])}.</p>",
+             _kpis(r), _inputs(r), _selection(r),
              "<h2>Held-out views</h2>"
              f"<p class=muted>{t['n_views']} views (every 8th by name), {escape(t['compared'])}; PSNR of the pooled "
              f"MSE, SSIM with an 11x11 Gaussian window. LPIPS: {escape(t['lpips_reason'] or 'LPIPS-VGG')}.</p>",
              table(["view", "PSNR (dB)", "SSIM", "render ms"],
                    [[p["name"], p["psnr"], p["ssim"], p["render_ms"]] for p in t["per_view"]], 3),
-             _restoration(r["restoration"]),
-             "<h2>Held-out views: photo, model, restored" + (", ground truth" if r["restoration"] else "") + "</h2>"]
+             _restoration(r["restoration"], r),
+             "<h2>Held-out views: photo, model" + ("" if no_water_removed(r) else ", restored")
+             + (", ground truth" if r["restoration"] else "") + "</h2>"]
     parts += [f"<p class=muted>{escape(name)}</p>" + _figures(cells) for name, cells in pics.views]
     parts.append("<h2>Water maps: attenuation, backscatter, depth</h2>")
     parts += [f"<p class=muted>{escape(name)}</p>" + _figures(cells) for name, cells in pics.maps] or [
@@ -204,7 +258,7 @@ def render_html(r: dict, pics: Pictures) -> str:
     if pics.curve is not None:
         parts.append(f'<img src="{data_uri(pics.curve)}" alt="speed against error" style="max-width:640px">')
     parts.append(f"<p class=muted>{escape(sve['metric'])} on {len(sve['views'])} held-out views against "
-                 f"{escape(sve.get('time', 'training seconds'))}.</p>"
+                 f"{escape(sve.get('time', 'training seconds'))}.{_curve_vs_header(r)}</p>"
                  + table(["iteration", "seconds", "PSNR (dB)"],
                          [[p["iteration"], p["elapsed_s"], p["psnr"]] for p in sve["points"]]))
     parts += [_water(r["water"]), _coefficients(r["model"].get("water_coefficients")), _timings(r["timings"]),

@@ -20,6 +20,7 @@ from .api.errors import error_body, install_error_handlers
 from .api.routes import artifacts, health, jobs, surveys
 from .coord import Coordinator
 from .dispatch import Dispatcher
+from .idempotency import IdempotencyIndex
 from .jobs import JobOps
 from .settings import Settings, load_settings
 from .store import JobStore
@@ -40,8 +41,9 @@ def build_services(settings: Settings) -> Services:
     coord = Coordinator.from_url(settings.redis_url, settings.redis_prefix)
     dispatcher = Dispatcher(create_celery(settings), settings.train_queue)
     registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,
-                              settings.survey_min_interval_s, settings.max_iterations)
-    return Services(settings, coord, JobOps(store, coord, dispatcher), registry, ingest_slots=None)
+                              settings.survey_min_interval_s, settings.max_iterations, settings.survey_owner_roots)
+    return Services(settings, coord, JobOps(store, coord, dispatcher), registry, ingest_slots=None,
+                    idempotency=IdempotencyIndex(settings.data_dir / "idempotency"))
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -194,6 +194,30 @@ class Coordinator:
     def release_idempotency(self, owner: str, key: str, job_id: str) -> None:
         self._delete_if_equal(keys=[self._idem_key(owner, key)], args=[f"pending:{job_id}"])
 
+    # ---- workers (worker.heartbeat)
+    def announce_worker(self, hostname: str, queues: list[str], pid: int, ttl_s: float) -> None:
+        import json
+
+        self.redis.set(self.key("worker", hostname), json.dumps({"queues": queues, "pid": pid, "at": time.time()}),
+                       ex=max(1, int(ttl_s)))
+
+    def forget_worker(self, hostname: str) -> None:
+        self.redis.delete(self.key("worker", hostname))
+
+    def workers(self) -> dict[str, list[str]]:
+        """Live workers (hostname -> queues they consume), from their heartbeats."""
+        import json
+
+        out: dict[str, list[str]] = {}
+        for k in self.redis.scan_iter(match=self.key("worker", "*"), count=100):
+            raw = self.redis.get(k)
+            if raw:
+                try:
+                    out[k[len(self.key("worker", "")):]] = list(json.loads(raw)["queues"])
+                except (ValueError, KeyError, TypeError):
+                    continue
+        return out
+
     # ---- housekeeping (tests)
     def delete_all_keys(self) -> int:
         """Delete every key under this prefix (the broker's too). Only tests and tear-downs call this."""

@@ -46,6 +46,7 @@ class StatusView:
     stage: str | None
     progress: float
     message: str
+    worker_lost: bool = False
 
 
 class JobOps:
@@ -73,6 +74,9 @@ class JobOps:
         m.runs.append(RunRecord(run_id=run_id, from_stage=first, queued_at=now))
         m.progress = self._done_progress(m)
         atomic_write_json(self.store.job_dir(job_id) / "job.json", options)
+        # the input's name as the client knows it (the report shows it; the folder only has input/archive)
+        atomic_write_json(self.store.job_dir(job_id) / "source.json",
+                          {"name": source.get("filename") or source.get("set") or source.get("kind")})
         self.store.write(m)
         self.store.append_log(job_id, f"INFO service: job created by {owner} ({source.get('kind')}); "
                                       f"first stage {first}")
@@ -138,7 +142,30 @@ class JobOps:
             progress = 100.0
         if m.state == "running" and m.cancel_requested:
             state = "cancelling"
-        return StatusView(m, state, stage, round(progress, 2), message)
+        lost = self._worker_lost(m)
+        if lost:
+            message = self._lost_message(m, message)
+        return StatusView(m, state, stage, round(progress, 2), message, lost)
+
+    def _worker_lost(self, m: Manifest) -> bool:
+        """A stage recorded as running whose run lock is gone: the runner holds the lock from before it records
+        ``running`` until after it records the end, so its worker died (the lock expired, ``lock_ttl_s``)."""
+        if m.state != "running" or m.current_stage is None or m.stage(m.current_stage).status != "running":
+            return False
+        try:
+            return not self.coord.run_lock_held(m.id)
+        except Exception as e:  # the cache is away: say nothing rather than something wrong
+            log.warning("cannot read the run lock: %s", e)
+            return False
+
+    def _lost_message(self, m: Manifest, last: str) -> str:
+        stage = m.current_stage
+        rec = m.stage(stage)
+        ckpt = self.store.last_checkpoint_iteration(m.id) if stage == "train" else None
+        resume = f"from checkpoint {ckpt}" if ckpt is not None else "from the start of the stage"
+        was = f" at '{last}'" if last else ""
+        return (f"worker lost during {stage} (attempt {rec.attempts}){was}; retrying {resume} when the task is "
+                f"delivered again")
 
     # ---- cancel / retry / delete
     def cancel(self, job_id: str, owner: str) -> Manifest:

@@ -25,6 +25,17 @@ STAGE_WEIGHTS: dict[str, float] = {"ingest": 3, "sfm": 12, "classify": 2, "train
 DEFAULT_STAGE_WEIGHT = 5.0
 
 
+class AttemptRecord(BaseModel):
+    """One runner's go at a stage. ``outcome`` ``worker_lost``: its worker died; ``last`` is the last progress
+    message it reported (e.g. "iteration 235/600")."""
+
+    attempt: int
+    started_at: float | None
+    ended_at: float | None = None
+    outcome: str  # done | failed | cancelled | worker_lost
+    last: str = ""
+
+
 class StageRecord(BaseModel):
     status: StageStatus = "pending"
     started_at: float | None = None
@@ -32,6 +43,7 @@ class StageRecord(BaseModel):
     seconds: float | None = None  # wall time of the attempt that finished it
     attempts: int = 0  # how many times a runner started it (a worker crash shows as attempts > 1)
     skipped: bool = False  # its completion marker already matched (redelivery, retry)
+    history: list[AttemptRecord] = Field(default_factory=list)  # every finished or lost attempt, in order
 
 
 class JobError(BaseModel):

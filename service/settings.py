@@ -70,7 +70,14 @@ class Settings(BaseSettings):
 
     # ---- survey folders
     survey_roots: list[Path] = []
-    """Folders under which survey folders may be registered (resolved, symlinks followed, then checked)."""
+    """Folders under which any owner may register survey folders (resolved, symlinks followed, then checked).
+    A folder belongs to the first owner who registers it (a second owner gets 409 ``path_taken``)."""
+    survey_owner_roots: dict[str, list[Path]] = {}
+    """Owner -> folders only that owner may register survey folders under, e.g. ``{"alice": ["/surveys/alice"]}``
+    (no other owner may register anything below them, even where a shared root covers them)."""
+    survey_min_images: int = Field(6, ge=3)
+    """A survey set is submitted only once it has this many images: smaller sets seldom survive SfM (4-5 tiny
+    sets failed there in issue 13) and are listed on the survey as waiting, with the reason."""
     surveys_file: Path | None = None
     """TOML file with ``[[survey]]`` tables (name, path, owner, interval_s, options); read on every tick."""
     survey_tick_s: float = Field(30.0, gt=0)

@@ -26,6 +26,7 @@ log = logging.getLogger(__name__)
 JOB_ID_RE = re.compile(r"^[a-z][a-z0-9]{7,63}$")
 LOG_NAME = "log.txt"
 INCOMPLETE_UPLOAD_AGE_S = 24 * 3600
+CHECKPOINT_RE = re.compile(r"checkpoint written: \S+ \(iteration (\d+)\)")  # pipeline.checkpoint's log line
 
 
 class JobNotFound(LookupError):
@@ -119,6 +120,18 @@ class JobStore:
             cut = len(data)  # one line longer than a page: hand it out in pieces
         # (cut == 0 otherwise: a line still being written; the next poll gets it whole)
         return data[:cut].decode("utf-8", errors="replace"), offset + cut, size
+
+    def last_checkpoint_iteration(self, job_id: str, tail_bytes: int = 256 << 10) -> int | None:
+        """The iteration of the last training checkpoint the job's log reports (``checkpoint written``)."""
+        path = self.job_dir(job_id) / LOG_NAME
+        try:
+            with open(path, "rb") as f:
+                f.seek(max(0, path.stat().st_size - tail_bytes))
+                text = f.read().decode("utf-8", "replace")
+        except OSError:
+            return None
+        found = CHECKPOINT_RE.findall(text)
+        return int(found[-1]) if found else None
 
     # ---- housekeeping
     def sweep_incomplete(self, max_age_s: float = INCOMPLETE_UPLOAD_AGE_S) -> int:

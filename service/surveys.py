@@ -23,6 +23,18 @@ Grouping rule (also in docs/SERVICE.md):
 Hidden files and folders, symbolic links and non-image suffixes are ignored. The set's images are copied into
 the job folder (``input/``) and checked against the hash while copying, so the job never depends on a folder
 that keeps changing.
+
+Owners (docs/SERVICE.md, "Survey folders"): a folder belongs to the first owner who registers it. No other
+owner may register it, a folder inside it or a folder around it (409 ``path_taken``); the surveys file cannot
+hand it to another owner either (such an entry is skipped and logged). ``survey_owner_roots`` gives an owner
+roots of their own, which no other owner may register anything under.
+
+Paths are re-checked at every scan: the registered folder must still be itself (not a link) and under an
+allowed root of its owner, else the scan records ``last_error`` on the survey and submits nothing. The folder
+is then read through :class:`service.safe_fs.FolderTree` (no link followed, at any depth, at any moment).
+
+Sets too small to reconstruct (fewer than ``min_images``, which the service sets to the SfM minimum for
+surveys) and sets still being written are listed on the survey as ``waiting`` with the reason.
 """
 
 from __future__ import annotations
@@ -47,6 +59,7 @@ from pipeline.stages import atomic_write_text
 
 from .manifest import Manifest
 from .options import JobOptionsIn
+from .safe_fs import FolderTree
 
 log = logging.getLogger(__name__)
 
@@ -92,11 +105,19 @@ class SubmittedSet(BaseModel):
     submitted_at: float
 
 
+class WaitingSet(BaseModel):
+    name: str
+    images: int
+    reason: str
+
+
 class SurveyState(BaseModel):
     last_scan_at: float = 0.0
     last_scan_seconds: float | None = None
     scans: int = 0
     last_error: str | None = None
+    last_error_code: str | None = None
+    waiting: list[WaitingSet] = Field(default_factory=list)  # sets seen by the last scan and not submitted, why
     sets: dict[str, SubmittedSet] = Field(default_factory=dict)  # set hash -> job
     digests: dict[str, tuple[int, int, str]] = Field(default_factory=dict)  # rel path -> (size, mtime_ns, sha256)
     # loose images only: rel path -> (size, mtime_ns, EXIF capture time or None when the file has none)
@@ -136,8 +157,9 @@ def set_job_id(sid: str, set_hash: str) -> str:
     return "s" + hashlib.sha256(f"{sid}\0{set_hash}".encode()).hexdigest()[:23]
 
 
-def resolve_under_roots(path: str, roots: list[Path]) -> Path:
-    """The real folder ``path`` names, if it lies under an allowed root (after resolving every link)."""
+def resolve_under_roots(path: str, roots: list[Path], forbidden: list[Path] = ()) -> Path:
+    """The real folder ``path`` names, if it lies under an allowed root (after resolving every link) and under
+    none of ``forbidden`` (other owners' own roots)."""
     if not roots:
         raise SurveyError("surveys_disabled", "no survey roots are configured (DUALPHYS_SURVEY_ROOTS)")
     try:
@@ -146,11 +168,24 @@ def resolve_under_roots(path: str, roots: list[Path]) -> Path:
         raise SurveyError("path_not_found", f"no such folder: {path}") from e
     if not real.is_dir():
         raise SurveyError("path_not_found", f"not a folder: {path}")
+    if root_of(real, roots) is None or root_of(real, list(forbidden)) is not None:
+        raise SurveyError("path_not_allowed", f"{path} is not under an allowed survey root")
+    return real
+
+
+def root_of(real: Path, roots: list[Path]) -> Path | None:
+    """The (resolved) root of ``roots`` that ``real`` lies under, or None."""
     for root in roots:
         r = Path(root).resolve()
         if real == r or real.is_relative_to(r):
-            return real
-    raise SurveyError("path_not_allowed", f"{path} is not under an allowed survey root")
+            return r
+    return None
+
+
+def overlaps(a: str, b: str) -> bool:
+    """Two resolved folders are the same, or one lies inside the other."""
+    pa, pb = Path(a), Path(b)
+    return pa == pb or pa.is_relative_to(pb) or pb.is_relative_to(pa)
 
 
 # ---------------------------------------------------------------- grouping (pure)
@@ -174,6 +209,18 @@ def list_images(root: Path) -> list[ImageFile]:
                 continue
             rel = PurePosixPath(Path(p).relative_to(root).as_posix())
             out.append(ImageFile(str(rel), st.st_size, st.st_mtime, st.st_mtime_ns))
+    return out
+
+
+def list_tree(tree: FolderTree) -> list[ImageFile]:
+    """:func:`list_images` through an opened :class:`FolderTree` (what scans use: no link is ever entered)."""
+    out: list[ImageFile] = []
+    for rel_dir, _dirs, files in tree.walk():
+        for name, st in files:
+            if Path(name).suffix.lower() not in IMAGE_SUFFIXES:
+                continue
+            rel = f"{rel_dir}/{name}" if rel_dir else name
+            out.append(ImageFile(rel, st.st_size, st.st_mtime, st.st_mtime_ns))
     return out
 
 
@@ -215,8 +262,8 @@ def _time_set(files: list[ImageFile]) -> ImageSet:
 # ---------------------------------------------------------------- capture time (EXIF header)
 
 
-def with_exif_times(root: Path, files: list[ImageFile],
-                    cache: dict[str, tuple[int, int, float | None]]) -> list[ImageFile]:
+def with_exif_times(root: Path, files: list[ImageFile], cache: dict[str, tuple[int, int, float | None]],
+                    tree: FolderTree | None = None) -> list[ImageFile]:
     """``files`` with ``exif_time`` filled in for the loose images (those directly in ``root``).
 
     ``cache`` (the survey state's ``exif_times``) is updated in place: a file whose size and mtime_ns match its
@@ -230,14 +277,15 @@ def with_exif_times(root: Path, files: list[ImageFile],
         loose.add(f.rel)
         known = cache.get(f.rel)
         if known is None or known[0] != f.size or known[1] != f.mtime_ns:
-            known = cache[f.rel] = (f.size, f.mtime_ns, read_exif_time(root / f.rel))
+            known = cache[f.rel] = (f.size, f.mtime_ns,
+                                    read_exif_time(root / f.rel, tree.open(f.rel) if tree is not None else None))
         out.append(replace(f, exif_time=known[2]))
     for rel in [k for k in cache if k not in loose]:
         del cache[rel]
     return out
 
 
-def read_exif_time(path: Path) -> float | None:
+def read_exif_time(path: Path, opened: BinaryIO | None = None) -> float | None:
     """The EXIF capture time of a JPEG, TIFF or PNG file as Unix seconds, or None when it has no usable one.
 
     Reads only the header (the Exif block precedes the pixels; typically one 4 KiB read), never decodes. A small
@@ -245,7 +293,7 @@ def read_exif_time(path: Path) -> float | None:
     200 JPEGs of 2 MB it took 76-131 us per file (page cache) and 177-223 us (evicted) against OpenImageIO's
     120-202 us and 244-303 us (min-median of 11 rounds on a busy 2-core machine)."""
     try:
-        with open(path, "rb") as f:
+        with opened if opened is not None else open(path, "rb") as f:
             tags = _exif_time_tags(f)
     except (OSError, ValueError, struct.error) as e:
         log.debug("%s: unreadable Exif header (%s); using the file time", path, e)
@@ -360,9 +408,9 @@ def exif_timestamp(original: str | None, subsec: str | None, offset: str | None)
     return t + int(digits) / 10 ** len(digits) if digits.isdigit() else t
 
 
-def file_sha256(path: Path) -> str:
+def file_sha256(path: Path, opened: BinaryIO | None = None) -> str:
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with opened if opened is not None else open(path, "rb") as f:
         while chunk := f.read(HASH_CHUNK):
             h.update(chunk)
     return h.hexdigest()
@@ -383,12 +431,57 @@ class SurveyRegistry:
     ``surveys_file`` each time; both keep their scan state in ``<data>/surveys/<id>/state.json``."""
 
     def __init__(self, surveys_dir: Path, roots: list[Path], surveys_file: Path | None, min_interval_s: float,
-                 max_iterations: int | None = None):
+                 max_iterations: int | None = None, owner_roots: dict[str, list[Path]] | None = None):
         self.dir = Path(surveys_dir)
         self.roots = roots
+        self.owner_roots = owner_roots or {}
         self.surveys_file = surveys_file
         self.min_interval_s = min_interval_s
         self.max_iterations = max_iterations  # the server's limit on a job's iterations (None: none)
+
+    def roots_for(self, owner: str) -> tuple[list[Path], list[Path]]:
+        """(roots ``owner`` may register under, roots reserved to other owners)."""
+        own = list(self.roots) + list(self.owner_roots.get(owner, []))
+        others = [r for o, rs in self.owner_roots.items() if o != owner for r in rs]
+        return own, others
+
+    def resolve(self, owner: str, path: str) -> Path:
+        own, others = self.roots_for(owner)
+        if not own:
+            raise SurveyError("surveys_disabled", "no survey roots are configured (DUALPHYS_SURVEY_ROOTS)")
+        return resolve_under_roots(path, own, others)
+
+    def check_folder(self, survey: Survey, surveys: list[Survey] | None = None) -> Path:
+        """At every scan: the survey's folder is still the folder that was registered (not replaced by a link),
+        still under an allowed root of its owner, and no earlier survey of another owner claims it. Returns the
+        root it lies under; raises SurveyError otherwise."""
+        registered = Path(survey.path)
+        try:
+            real = Path(os.path.realpath(registered, strict=True))
+        except OSError as e:
+            raise SurveyError("path_not_found", f"the survey folder {survey.path} is missing") from e
+        if real != registered or not real.is_dir():
+            raise SurveyError("path_changed", f"the survey folder {survey.path} is no longer a folder of its own "
+                                              f"(it was replaced by a link or a file); it is not scanned")
+        own, others = self.roots_for(survey.owner)
+        root = root_of(real, own)
+        if root is None or root_of(real, others) is not None:
+            raise SurveyError("path_not_allowed", f"the survey folder {survey.path} is no longer under an allowed "
+                                                  f"survey root; it is not scanned")
+        if self.claimed_by_other(survey, surveys if surveys is not None else self.all()):
+            raise SurveyError("path_taken", f"the survey folder {survey.path} belongs to another owner's survey")
+        return root
+
+    @staticmethod
+    def claimed_by_other(survey: Survey, surveys: list[Survey]) -> bool:
+        """Another owner's survey that came first (API surveys by creation time, then the surveys file in
+        order) covers this survey's folder, lies inside it or around it."""
+        for other in surveys:
+            if other.id == survey.id:
+                return False  # everything after this one came later
+            if other.owner != survey.owner and overlaps(other.path, survey.path):
+                return True
+        return False
 
     def _check_options(self, options: SurveyOptions) -> None:
         if self.max_iterations is not None and (why := options.over_limit(self.max_iterations)) is not None:
@@ -402,26 +495,38 @@ class SurveyRegistry:
     def register(self, owner: str, path: str, interval_s: float, name: str | None,
                  options: SurveyOptions) -> Survey:
         self._check_options(options)
-        real = resolve_under_roots(path, self.roots)
+        real = self.resolve(owner, path)
         if interval_s < self.min_interval_s:
             raise SurveyError("interval_too_short", f"interval_s must be at least {self.min_interval_s}")
         sid = survey_id(owner, str(real))
-        if any(s.id == sid for s in self.all()):
+        existing = self.all()
+        if any(s.id == sid for s in existing):
             raise SurveyError("survey_exists", f"{real} is already registered as survey {sid}")
+        if any(s.owner != owner and overlaps(s.path, str(real)) for s in existing):
+            raise SurveyError("path_taken", f"{path} (or a folder inside or around it) belongs to another owner's "
+                                            f"survey; a folder has one owner")
         s = Survey(id=sid, owner=owner, name=name or real.name, path=str(real), interval_s=interval_s,
                    options=options, origin="api", created_at=time.time())
         atomic_write_text(self._folder(sid) / "survey.json", s.model_dump_json(indent=2))
         return s
 
     def all(self) -> list[Survey]:
-        out = []
+        """API surveys (oldest first), then the surveys file's entries, leaving out entries that would hand a
+        folder another owner already has (first claim wins, see the module docstring)."""
+        out: list[Survey] = []
         if self.dir.is_dir():
             for p in sorted(self.dir.glob("v*/survey.json")):
                 try:
                     out.append(Survey.model_validate_json(p.read_text()))
                 except (ValidationError, OSError) as e:
                     log.error("unreadable survey %s: %s", p, e)
-        out += self.from_config()
+        out.sort(key=lambda s: (s.created_at, s.id))
+        for s in self.from_config():
+            if any(o.owner != s.owner and overlaps(o.path, s.path) for o in out):
+                log.error("surveys file %s: %s of owner %r skipped: the folder belongs to another owner's survey",
+                          self.surveys_file, s.path, s.owner)
+                continue
+            out.append(s)
         return out
 
     def from_config(self) -> list[Survey]:
@@ -435,9 +540,9 @@ class SurveyRegistry:
         out = []
         for i, entry in enumerate(data.get("survey", [])):
             try:
-                real = resolve_under_roots(str(entry["path"]), self.roots)
-                interval = max(float(entry.get("interval_s", 3600)), self.min_interval_s)
                 owner = str(entry["owner"])
+                real = self.resolve(owner, str(entry["path"]))
+                interval = max(float(entry.get("interval_s", 3600)), self.min_interval_s)
                 options = SurveyOptions(**entry.get("options", {}))
                 self._check_options(options)
                 out.append(Survey(id=survey_id(owner, str(real)), owner=owner, name=str(entry.get("name", real.name)),
@@ -492,36 +597,17 @@ def scan(registry: SurveyRegistry, survey: Survey, jobs, cfg: ScanConfig, now: f
     root = Path(survey.path)
     submitted: list[str] = []
     try:
-        if not root.is_dir():
-            raise FileNotFoundError(f"survey folder {root} is missing")
-        files = with_exif_times(root, list_images(root), state.exif_times)
-        present = {f.rel for f in files}
-        state.digests = {k: v for k, v in state.digests.items() if k in present}
-        for image_set in group_images(files, cfg.gap_s):
-            if len(image_set.files) < cfg.min_images or now - image_set.newest < cfg.settle_s:
-                continue
-            for f in image_set.files:
-                known = state.digests.get(f.rel)
-                if known is None or known[0] != f.size or known[1] != f.mtime_ns:
-                    state.digests[f.rel] = (f.size, f.mtime_ns, file_sha256(root / f.rel))
-            h = set_hash(image_set.files, state.digests)
-            job_id = set_job_id(survey.id, h)
-            if h in state.sets:
-                _requeue_if_never_sent(jobs, job_id)
-                continue
-            try:
-                if submit_set(jobs, survey, image_set, h, job_id, state.digests):
-                    submitted.append(job_id)
-            except SurveyError as e:
-                log.warning("survey %s: set %s not submitted: %s", survey.id, image_set.name, e)
-                continue
-            state.sets[h] = SubmittedSet(name=image_set.name, images=len(image_set.files), job_id=job_id,
-                                         submitted_at=time.time())
-            registry.save_state(survey.id, state)  # recorded at once: a crash later in the scan loses nothing
-        state.last_error = None
-    except OSError as e:
+        allowed_root = registry.check_folder(survey)
+        with FolderTree(allowed_root, root) as tree:
+            submitted = _scan_tree(registry, survey, jobs, cfg, now, state, tree)
+        state.last_error = state.last_error_code = None
+    except SurveyError as e:  # the folder is not (any more) one this survey may read: nothing is submitted
+        log.error("survey %s: not scanned: %s", survey.id, e)
+        state.last_error, state.last_error_code = str(e), e.code
+    except OSError as e:  # a link met on the way (ELOOP / ENOTDIR), a vanished folder, a read error
         log.error("survey %s: scan failed: %s", survey.id, e)
-        state.last_error = str(e)
+        state.last_error = f"scan failed: {e.strerror or e}"
+        state.last_error_code = "scan_failed"
     state.scans += 1
     state.last_scan_at = time.time()
     state.last_scan_seconds = round(time.time() - t0, 3)
@@ -529,6 +615,59 @@ def scan(registry: SurveyRegistry, survey: Survey, jobs, cfg: ScanConfig, now: f
     if submitted:
         log.info("survey %s: submitted %s", survey.id, submitted)
     return submitted
+
+
+def _scan_tree(registry: SurveyRegistry, survey: Survey, jobs, cfg: ScanConfig, now: float, state: SurveyState,
+               tree: FolderTree) -> list[str]:
+    root = Path(survey.path)
+    submitted: list[str] = []
+    files = with_exif_times(root, list_tree(tree), state.exif_times, tree)
+    present = {f.rel for f in files}
+    state.digests = {k: v for k, v in state.digests.items() if k in present}
+    state.waiting = []
+    for image_set in group_images(files, cfg.gap_s):
+        n = len(image_set.files)
+        if n < cfg.min_images:
+            state.waiting.append(WaitingSet(name=image_set.name, images=n, reason=(
+                f"too_few_images: {n} image(s); a set needs at least {cfg.min_images} to be reconstructed "
+                f"(it is submitted once it has them)")))
+            continue
+        if now - image_set.newest < cfg.settle_s:
+            state.waiting.append(WaitingSet(name=image_set.name, images=n, reason=(
+                f"settling: the newest image is {now - image_set.newest:.0f} s old; sets are submitted "
+                f"{cfg.settle_s:.0f} s after their last change")))
+            continue
+        for f in image_set.files:
+            known = state.digests.get(f.rel)
+            if known is None or known[0] != f.size or known[1] != f.mtime_ns:
+                state.digests[f.rel] = (f.size, f.mtime_ns, file_sha256(root / f.rel, tree.open(f.rel)))
+        h = set_hash(image_set.files, state.digests)
+        job_id = set_job_id(survey.id, h)
+        if h in state.sets:
+            _requeue_if_never_sent(jobs, job_id)
+            continue
+        name = unique_set_name(image_set.name, state.sets)
+        try:
+            if submit_set(jobs, survey, ImageSet(name, image_set.files), h, job_id, state.digests, tree):
+                submitted.append(job_id)
+        except SurveyError as e:
+            log.warning("survey %s: set %s not submitted: %s", survey.id, image_set.name, e)
+            continue
+        state.sets[h] = SubmittedSet(name=name, images=n, job_id=job_id, submitted_at=time.time())
+        registry.save_state(survey.id, state)  # recorded at once: a crash later in the scan loses nothing
+    return submitted
+
+
+def unique_set_name(name: str, sets: dict[str, SubmittedSet]) -> str:
+    """``name``, or ``name (2)``, ``name (3)`` ... when earlier sets (e.g. the same sub-folder before it grew)
+    already carry it: every job of a survey has its own display name."""
+    taken = {s.name for s in sets.values()}
+    if name not in taken:
+        return name
+    k = 2
+    while f"{name} ({k})" in taken:
+        k += 1
+    return f"{name} ({k})"
 
 
 def _requeue_if_never_sent(jobs, job_id: str) -> None:
@@ -543,7 +682,7 @@ def _requeue_if_never_sent(jobs, job_id: str) -> None:
 
 
 def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
-               digests: dict[str, tuple[int, int, str]]) -> bool:
+               digests: dict[str, tuple[int, int, str]], tree: FolderTree | None = None) -> bool:
     """Create the job of one set unless it exists; True when this call created it.
 
     Copy into a staging folder, verify every file's hash while copying, rename the folder into place (atomic),
@@ -564,7 +703,8 @@ def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
         for f in image_set.files:
             dst = staging / "input" / f.rel
             dst.parent.mkdir(parents=True, exist_ok=True)
-            if _copy_hashed(root / f.rel, dst) != digests[f.rel][2]:
+            src = tree.open(f.rel) if tree is not None else open(root / f.rel, "rb")
+            if _copy_hashed(src, dst) != digests[f.rel][2]:
                 raise SurveyError("set_changed", f"{f.rel} changed while it was copied; the next scan retries")
         os.rename(staging, final)
     except BaseException:
@@ -577,11 +717,12 @@ def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
     return True
 
 
-def _copy_hashed(src: Path, dst: Path) -> str:
+def _copy_hashed(src: BinaryIO, dst: Path) -> str:
     h = hashlib.sha256()
-    with open(src, "rb") as fi, open(dst, "xb") as fo:
+    with src as fi, open(dst, "xb") as fo:
         while chunk := fi.read(HASH_CHUNK):
             h.update(chunk)
             fo.write(chunk)
-    shutil.copystat(src, dst)
+        st = os.fstat(fi.fileno())
+    os.utime(dst, ns=(st.st_atime_ns, st.st_mtime_ns))
     return h.hexdigest()

@@ -4,7 +4,8 @@ size cap; see shared/notes).
 
 Two shapes are accepted on ``POST /v1/jobs``:
 
-- ``multipart/form-data`` with one file part named ``archive`` (or ``file``) and plain fields for the options;
+- ``multipart/form-data`` with one file part named ``archive`` and plain fields for the options (a file part
+  under any other name, ``file`` included, is refused with 400 ``unexpected_file``: one documented name);
 - a raw body (``application/zip``, ``application/x-tar``, ``application/gzip``, ``application/octet-stream``, ...)
   with the options in the query string.
 
@@ -24,7 +25,7 @@ from pathlib import Path
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
-FILE_FIELDS = ("archive", "file")
+FILE_FIELDS = ("archive",)
 RAW_TYPES = frozenset({"application/zip", "application/x-zip-compressed", "application/x-tar", "application/gzip",
                        "application/x-gzip", "application/x-bzip2", "application/x-xz", "application/octet-stream"})
 MAX_FIELDS = 32

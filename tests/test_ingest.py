@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import os
 import stat
 import tarfile
@@ -187,3 +188,93 @@ def test_extraction_into_nonempty_target_is_refused(tmp_path: Path, good) -> Non
     with pytest.raises(ValueError):
         extract_archive(_zip(tmp_path / "s.zip", good), tmp_path / "t")
     assert (tmp_path / "t" / "keep").read_text() == "x"
+
+
+# ---------------------------------------------------------------- issue 13: ordinary tars, encrypted zips, names
+
+
+def _tar_of_folder(path: Path, folder: Path, mode: str = "w:gz") -> Path:
+    """What `tar czf x.tar.gz -C folder .` writes: a '.' member, then './'-prefixed names."""
+    with tarfile.open(path, mode) as tf:
+        tf.add(folder, arcname=".")
+    return path
+
+
+def test_dot_slash_tar_of_a_folder_is_accepted(tmp_path: Path, good) -> None:
+    folder = tmp_path / "images"
+    for name, data in good.items():
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_bytes(data)
+    t = _tar_of_folder(tmp_path / "x.tar.gz", folder)
+    with tarfile.open(t) as tf:
+        assert tf.getnames()[0] == "." and all(n == "." or n.startswith("./") for n in tf.getnames())
+    res = ingest(t, tmp_path / "job")
+    assert res.images == [f"dive__img_{i}.jpg" for i in range(4)]
+    # the same archive from GNU tar itself, when it is installed
+    import shutil
+    import subprocess
+
+    if shutil.which("tar"):
+        t2 = tmp_path / "gnu.tar.gz"
+        subprocess.run(["tar", "czf", str(t2), "-C", str(folder), "."], check=True)
+        assert ingest(t2, tmp_path / "job-gnu").images == res.images
+
+
+@pytest.mark.parametrize("name, code", [("./../evil.jpg", "path_escape"), ("./dive/../../evil.jpg", "path_escape"),
+                                        ("./", "bad_name"), ("/./evil.jpg", "absolute_path")])
+def test_dot_slash_does_not_open_escapes(tmp_path: Path, good, name: str, code: str) -> None:
+    t = tmp_path / "x.tar"
+    with tarfile.open(t, "w") as tf:
+        for n, data in {**good, name: b"x"}.items():
+            info = tarfile.TarInfo(n)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))  # a regular file named './' has an empty name: refused
+    with pytest.raises(ArchiveError) as exc:
+        ingest(t, tmp_path / "job")
+    assert exc.value.code == code
+    assert not (tmp_path / "evil.jpg").exists() and not (tmp_path.parent / "evil.jpg").exists()
+
+
+def _encrypted_flag(path: Path) -> Path:
+    """Mark every entry of a stored zip as encrypted (general purpose bit 0, local and central headers): zipfile
+    then refuses to read it exactly as it refuses a `zip -P` archive (the live suite uses real ZipCrypto)."""
+    data = bytearray(path.read_bytes())
+    for sig, flag_at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):
+        i = data.find(sig)
+        while i >= 0:
+            data[i + flag_at] |= 0x1
+            i = data.find(sig, i + 4)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_encrypted_zip_is_a_typed_refusal(tmp_path: Path, good) -> None:
+    z = _encrypted_flag(_zip(tmp_path / "enc.zip", good))
+    with zipfile.ZipFile(z) as zf, pytest.raises(RuntimeError, match="encrypted"):
+        zf.read("dive/img_0.jpg")  # what used to escape as a 500
+    with pytest.raises(ArchiveError) as exc:
+        ingest(z, tmp_path / "job")
+    assert exc.value.code == "encrypted_archive" and "password" in str(exc.value)
+    assert not (tmp_path / "job" / "upload").exists()
+
+
+@pytest.mark.parametrize("name", ["a" * 300 + ".jpg", "/".join(["d" * 200] * 6) + "/x.jpg"])
+def test_over_long_member_name_is_refused_without_server_paths(tmp_path: Path, good, name: str) -> None:
+    z = _zip(tmp_path / "long.zip", {**good, name: good["dive/img_0.jpg"]})
+    with pytest.raises(ArchiveError) as exc:
+        ingest(z, tmp_path / "job")
+    assert exc.value.code == "name_too_long"
+    assert str(tmp_path) not in str(exc.value) and len(str(exc.value)) < 400
+
+
+def test_ingest_json_names_the_input_relative_to_the_job(tmp_path: Path, good) -> None:
+    job = tmp_path / "job"
+    (job / "input").mkdir(parents=True)
+    z = _zip(job / "input" / "archive", {**good, "dive/broken.jpg": good["dive/img_0.jpg"][:150]})
+    res = ingest(z, job)
+    written = json.loads((job / "ingest.json").read_text())
+    assert res.source == written["source"] == "input/archive"
+    assert [s["file"] for s in res.skipped] == ["dive/broken.jpg"]
+    assert str(tmp_path) not in (job / "ingest.json").read_text()
+    outside = _zip(tmp_path / "set.zip", good)
+    assert ingest(outside, tmp_path / "job2").source == "set.zip"

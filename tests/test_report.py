@@ -153,3 +153,41 @@ def test_report_html_renders_in_headless_chromium(job, tmp_path):
     # A blank or broken page is flat; the report's text, tables and pictures are not.
     assert float(px.std()) > 0.1
     assert float(np.abs(np.diff(px, axis=0)).mean()) > 0.005
+
+
+def test_report_says_what_happened(job, tmp_path):
+    """Issue 13, item 13: the input and the SfM summary are shown, the water decision stands next to the mode,
+    a 3dgs job says no water was removed (and shows no restored J), the header's PSNR and the curve's last point
+    are either the same number or each named with its view set, and no absolute path is left."""
+    job_dir, results = job
+    r = _report(job_dir)
+    assert r["input"] == {"name": "images", "images": 12, "skipped": 0}
+    sfm = results["sfm"]
+    assert r["sfm"]["registered"] == sfm["registered"] == 12 and r["sfm"]["total"] == 12
+    assert r["sfm"]["matcher"] == sfm["matcher"] and r["sfm"]["mean_reproj_error_px"] == sfm["mean_reproj_error_px"]
+    text = (job_dir / "output" / "report.json").read_text()
+    assert str(job_dir.parent) not in text and '"/' not in text  # no absolute path anywhere (options.source ...)
+    html = (job_dir / "output" / "report.html").read_text()
+    assert f"registered <b>{sfm['registered']} of {sfm['total']}</b>" in html and "matching" in html
+    assert "Input <b>images</b>: 12 images" in html
+    selection = html[html.index("<h2>Model selection</h2>"):html.index("<h2>Held-out views</h2>")]
+    assert f"Water classified <b>{r['water']['water_type']}</b>" in selection
+    assert f"held-out PSNR ({r['metrics']['test']['n_views']} views)" in html
+    assert "the header's held-out PSNR" in html  # the curve's last point is related to the header, either way
+
+    copy = tmp_path / "job3dgs"
+    shutil.copytree(job_dir, copy, ignore=shutil.ignore_patterns("report.*", "speed_vs_error.png"))
+    ev = json.loads((copy / "evaluate.json").read_text())
+    atomic_write_json(copy / "evaluate.json", {**ev, "mode": "3dgs"})
+    sel = {"requested": "auto", "chosen": "3dgs", "reason": "probe: the water changes nothing measurable"}
+    (copy / "train" / "selection.json").write_text(json.dumps(sel))
+    (copy / "source.json").write_text(json.dumps({"name": "reef-dive.zip"}))
+    write_report(copy, copy / "output")
+    r3 = json.loads((copy / "output" / "report.json").read_text())
+    validate_report(r3)
+    assert r3["mode"] == "3dgs" and r3["input"]["name"] == "reef-dive.zip"
+    html3 = (copy / "output" / "report.html").read_text()
+    assert "No water was removed" in html3 and "probe: the water changes nothing measurable" in html3
+    assert "Held-out views: photo, model, ground truth" in html3
+    for claim in ("<figcaption>restored J", "restored J PSNR", "restored J vs true"):  # shown for dualphys
+        assert claim in html and claim not in html3, claim

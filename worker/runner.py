@@ -24,7 +24,8 @@ from dataclasses import dataclass
 
 from service.coord import Coordinator, RunLock
 from service.jobs import JobOps, pipeline_stages
-from service.manifest import TERMINAL_STATES, JobError, Manifest, overall_progress
+from service.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, overall_progress
+from service.redact import redact_paths
 from service.settings import Settings
 from service.store import LOG_NAME, JobNotFound, JobStore
 
@@ -86,7 +87,7 @@ def execute_stage(rt: Runtime, job_id: str, stage: str, run_id: str) -> Outcome:
     if lock is None:
         return Outcome("busy", retry_after=rt.settings.lock_retry_s, detail="another runner holds the job")
     try:
-        with job_log(rt.store, job_id):
+        with job_log(rt.store, job_id, rt.settings.data_dir):
             return _execute_locked(rt, job_id, stage, run_id, lock)
     finally:
         lock.release()
@@ -113,9 +114,15 @@ def _execute_locked(rt: Runtime, job_id: str, stage: str, run_id: str, lock: Run
                 _finish(m, "cancelled", None, "cancelled before " + stage)
                 rt.store.write(m)
                 return Outcome("cancelled")
+            if rec.status == "running":  # the previous attempt's worker died: keep that attempt in the record
+                rec.history.append(AttemptRecord(attempt=rec.attempts, started_at=rec.started_at,
+                                                 ended_at=m.updated_at, outcome="worker_lost", last=m.message))
+                log.warning("job %s: the worker running %s died (attempt %d, last: %s)", job_id, stage,
+                            rec.attempts, m.message or "-")
             if rec.status == "running" and rec.attempts >= rt.settings.max_stage_attempts:
                 msg = f"the worker died {rec.attempts} times while running {stage}"
                 _finish(m, "failed", JobError(stage=stage, code="worker_lost", message=msg), msg)
+                rec.status, rec.finished_at = "failed", time.time()
                 rt.store.write(m)
                 return Outcome("failed", detail=msg)
             rec.status, rec.started_at, rec.finished_at, rec.seconds = "running", time.time(), None, None
@@ -147,7 +154,9 @@ def _execute_locked(rt: Runtime, job_id: str, stage: str, run_id: str, lock: Run
         if lock.lost.is_set():
             return Outcome("lost", detail="job lock lost; another runner owns the job")
         log.exception("job %s: stage %s failed", job_id, stage)
-        err = JobError(stage=stage, code=error_code(e), message=f"{e}" or type(e).__name__)
+        err = JobError(stage=stage, code=error_code(e), message=redact_paths(f"{e}" or type(e).__name__,
+                                                                             rt.store.job_dir(job_id),
+                                                                             rt.settings.data_dir))
         return _record_end(rt, job_id, run_id, stage, "failed", err, err.message, time.time() - t0)
     log.info("job %s: stage %s %s in %.1f s", job_id, stage, "skipped (marker matches)" if skipped else "done",
              time.time() - t0)
@@ -187,6 +196,10 @@ def _record_end(rt: Runtime, job_id: str, run_id: str, stage: str, status: str, 
             return Outcome("stale", detail="run superseded while running")
         rec = m.stage(stage)
         rec.status, rec.finished_at, rec.seconds, rec.skipped = status, time.time(), round(seconds, 3), skipped
+        rec.history.append(AttemptRecord(attempt=rec.attempts, started_at=rec.started_at, ended_at=rec.finished_at,
+                                         outcome=status, last=message or m.message))
+        if stage == "ingest" and status == "done" and m.ingest is None:
+            m.ingest = _read_ingest(rt.store.job_dir(job_id))  # survey jobs: the worker ran ingest, not the API
         done = {s for s in stages if m.stage(s).status == "done"}
         m.progress = max(m.progress, progress, overall_progress(stages, done, None, 0.0))
         if status == "cancelled":
@@ -211,6 +224,18 @@ def _record_end(rt: Runtime, job_id: str, run_id: str, stage: str, status: str, 
     except Exception as e:  # the cache is only a cache
         log.warning("progress cache unavailable: %s", e)
     return Outcome({"done": "ran"}.get(status, status), detail=message, next_stage=next_up)
+
+
+def _read_ingest(job_dir) -> dict | None:
+    """The ingest stage's result (``ingest.json``) for the job's status: images, skipped, ignored."""
+    import json
+
+    try:
+        data = json.loads((job_dir / "ingest.json").read_text())
+    except (OSError, ValueError) as e:
+        log.warning("cannot read %s: %s", job_dir / "ingest.json", e)
+        return None
+    return data if isinstance(data, dict) else None
 
 
 class ProgressReporter:
@@ -267,14 +292,36 @@ class CancelCheck:
         return self._cancelled
 
 
+class JobLogFormatter(logging.Formatter):
+    """The job log is the client's: server paths are taken out of every line, and a traceback (file names of
+    the installed code) is cut to its last line; the worker's own log keeps the whole record."""
+
+    def __init__(self, job_dir, data_dir):
+        super().__init__("%(asctime)s %(levelname)s %(name)s: %(message)s", "%Y-%m-%dT%H:%M:%SZ")
+        self.converter = time.gmtime
+        self.job_dir, self.data_dir = job_dir, data_dir
+
+    def formatException(self, ei) -> str:
+        exc = ei[1]
+        return f"{type(exc).__name__}: {exc}" if exc is not None else ""
+
+    def formatStack(self, stack_info: str) -> str:
+        return ""
+
+    def format(self, record: logging.LogRecord) -> str:
+        cached, record.exc_text = record.exc_text, None  # other handlers may have cached the full traceback
+        try:
+            return redact_paths(super().format(record), self.job_dir, self.data_dir)
+        finally:
+            record.exc_text = cached
+
+
 @contextmanager
-def job_log(store: JobStore, job_id: str) -> Iterator[None]:
+def job_log(store: JobStore, job_id: str, data_dir=None) -> Iterator[None]:
     """Copy log records (ours and the pipeline's, INFO and up) into the job's log.txt while a stage runs."""
     handler = logging.FileHandler(store.job_dir(job_id) / LOG_NAME, encoding="utf-8", delay=True)
     handler.setLevel(logging.INFO)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s",
-                                           "%Y-%m-%dT%H:%M:%SZ"))
-    handler.formatter.converter = time.gmtime
+    handler.setFormatter(JobLogFormatter(store.job_dir(job_id), data_dir))
     root = logging.getLogger()
     loggers = [logging.getLogger(n) for n in ("pipeline", "worker", "service")]
     levels = [lg.level for lg in loggers]

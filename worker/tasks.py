@@ -6,14 +6,21 @@ from __future__ import annotations
 import logging
 import time
 
+from celery.signals import worker_ready, worker_shutdown
+
 from service.dispatch import RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK, Dispatcher
 from service.settings import load_settings
 
 from .app import app
+from .heartbeat import on_worker_ready, on_worker_shutdown
 from .process import prepare_stage_process
 from .runner import Runtime, execute_stage
 
 log = logging.getLogger(__name__)
+
+# the worker's main process announces itself in Redis for /ready (worker.heartbeat); weak=False: module functions
+worker_ready.connect(on_worker_ready, weak=False)
+worker_shutdown.connect(on_worker_shutdown, weak=False)
 
 
 @app.task(name=RUN_STAGE_TASK, bind=True, acks_late=True, reject_on_worker_lost=True, max_retries=None,
@@ -78,6 +85,7 @@ def _survey_runtime(settings):
 
     rt = Runtime.create(settings, app)
     registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,
-                              settings.survey_min_interval_s, settings.max_iterations)
-    cfg = ScanConfig(min_images=settings.min_images, settle_s=settings.survey_settle_s, gap_s=settings.survey_gap_s)
+                              settings.survey_min_interval_s, settings.max_iterations, settings.survey_owner_roots)
+    cfg = ScanConfig(min_images=max(settings.min_images, settings.survey_min_images), settle_s=settings.survey_settle_s,
+                     gap_s=settings.survey_gap_s)
     return rt, registry, cfg

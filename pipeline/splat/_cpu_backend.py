@@ -7,11 +7,17 @@ The split mirrors gsplat, so ``means2d`` is a real node of the graph and ``info[
 backward (DefaultStrategy reads it). numba is imported, and the kernels compiled or loaded from the on-disk
 cache (``cache=True``), on the first call, never at import. Kernels use numba's thread pool (all cores by default,
 ``NUMBA_NUM_THREADS`` to change), with dynamic scheduling so both cores stay busy when other jobs interfere.
+
+The thread pool is OpenMP (or numba's own workqueue where OpenMP is missing), never TBB, whatever the machine
+has installed: numba prefers TBB when ``libtbb`` is present, and TBB's work stealing changes the order of the
+kernels' float sums from run to run, so a resumed training would no longer be the run it resumes
+(:func:`pin_threading_layer`; issue 13). ``NUMBA_THREADING_LAYER`` set explicitly still wins.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 
 import numpy as np
 import torch
@@ -27,12 +33,28 @@ _TILE_CHUNK = 4  # tiles per dynamically scheduled work item of the compositing 
 
 
 _announced = False
+# numba takes the first layer of this permutation that loads; workqueue always loads, so TBB is never reached
+DETERMINISTIC_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
+
+def pin_threading_layer() -> None:
+    """Make numba pick OpenMP or workqueue rather than TBB for the kernels (module docstring), unless the user
+    chose a layer with ``NUMBA_THREADING_LAYER`` / ``NUMBA_THREADING_LAYER_PRIORITY``. Must run before numba
+    starts its thread pool (the first parallel kernel call of the process); later it changes nothing."""
+    import numba
+
+    if os.environ.get("NUMBA_THREADING_LAYER") or os.environ.get("NUMBA_THREADING_LAYER_PRIORITY"):
+        return
+    numba.config.THREADING_LAYER = "default"
+    numba.config.THREADING_LAYER_PRIORITY = list(DETERMINISTIC_LAYER_PRIORITY)
 
 
 def _kernels():
     """The numba kernel modules (imported on first use; each kernel compiles, or loads from the on-disk cache,
     at its first call)."""
     global _announced
+    if not _announced:
+        pin_threading_layer()
     from pipeline.splat import _cpu_project_kernels, _cpu_raster_kernels
 
     if not _announced:

@@ -10,6 +10,7 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.coord import Coordinator
+from service.idempotency import IdempotencyIndex
 from service.jobs import JobOps
 from service.manifest import Manifest
 from service.settings import Settings
@@ -26,6 +27,7 @@ class Services:
     jobs: JobOps
     surveys: SurveyRegistry
     ingest_slots: object  # anyio.Semaphore, created inside the running loop
+    idempotency: IdempotencyIndex
 
 
 def get_services(request: Request) -> Services:

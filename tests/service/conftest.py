@@ -261,6 +261,8 @@ def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
         **{k: v for k, v in os.environ.items() if not k.startswith("DUALPHYS_")},
         "OMP_WAIT_POLICY": "PASSIVE",
         "PYTHONUNBUFFERED": "1",
+        # the processes import this checkout, whatever copy of the project the interpreter has installed
+        "PYTHONPATH": os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
         "DUALPHYS_API_KEYS": json.dumps({v: k for k, v in KEYS.items()}),
         "DUALPHYS_DATA_DIR": str(stack.data_dir),
         "DUALPHYS_REDIS_URL": REDIS_URL,
@@ -277,6 +279,7 @@ def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
         "DUALPHYS_SURVEY_TICK_S": "1",
         "DUALPHYS_SURVEY_MIN_INTERVAL_S": "1",
         "DUALPHYS_SURVEY_SETTLE_S": "0",
+        "DUALPHYS_SURVEY_MIN_IMAGES": "4",
     }
     try:
         stack.start_api()

@@ -136,3 +136,52 @@ def job_log(client: httpx.Client, job_id: str) -> str:
         if d["next_offset"] == offset:
             return "".join(text)
         offset = d["next_offset"]
+
+
+# ---------------------------------------------------------------- archives zipfile cannot write
+
+
+def _crc_byte(crc: int, b: int) -> int:
+    """One step of the raw CRC-32 register update that PKWARE's traditional encryption uses."""
+    import zlib
+
+    return ~zlib.crc32(bytes([b]), ~crc & 0xFFFFFFFF) & 0xFFFFFFFF
+
+
+def encrypted_zip(entries: dict[str, bytes], password: bytes = b"secret") -> bytes:
+    """A stored zip whose entries are encrypted with PKWARE's traditional ("ZipCrypto") scheme, as `zip -P`
+    writes it (zipfile reads but cannot write encrypted entries). APPNOTE.TXT 6.1."""
+    import struct
+    import zlib
+
+    def keys_for() -> list[int]:
+        k = [0x12345678, 0x23456789, 0x34567890]
+        for c in password:
+            update(k, c)
+        return k
+
+    def update(k: list[int], c: int) -> None:
+        k[0] = _crc_byte(k[0], c)
+        k[1] = ((k[1] + (k[0] & 0xFF)) * 134775813 + 1) & 0xFFFFFFFF
+        k[2] = _crc_byte(k[2], (k[1] >> 24) & 0xFF)
+
+    def encrypt(data: bytes) -> bytes:
+        k = keys_for()
+        out = bytearray()
+        for p in data:
+            t = (k[2] | 2) & 0xFFFF
+            out.append(p ^ (((t * (t ^ 1)) >> 8) & 0xFF))
+            update(k, p)
+        return bytes(out)
+
+    body, central = bytearray(), bytearray()
+    for name, data in entries.items():
+        crc = zlib.crc32(data)
+        enc = encrypt(bytes(11) + bytes([crc >> 24]) + data)
+        fname = name.encode()
+        offset = len(body)
+        fields = (20, 0x1, 0, 0, 0x21, crc, len(enc), len(data), len(fname))
+        body += struct.pack("<IHHHHHIIIHH", 0x04034B50, *fields, 0) + fname + enc
+        central += struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, *fields, 0, 0, 0, 0, 0, offset) + fname
+    end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(entries), len(entries), len(central), len(body), 0)
+    return bytes(body + central + end)

@@ -21,6 +21,7 @@ from svc_helpers import (
     MAX_ENTRIES,
     MAX_UPLOAD,
     METRICS,
+    encrypted_zip,
     job_log,
     job_status,
     small_jpegs,
@@ -70,7 +71,21 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
     assert 0 < ckpt < ITERATIONS
     worker.kill9()
     assert not worker.alive()
+    # issue 13, item 6: the status says the worker is gone (once its job lock expired, lock_ttl_s = 5 s here)
+    # and from where the stage resumes; /ready says nobody consumes the queues (heartbeat TTL 15 s)
+    lost = wait_for("the status to show the lost worker", lambda: (s if (s := job_status(c, jid))["worker_lost"]
+                                                                   else None), timeout=30)
+    assert lost["state"] == "running" and lost["stage"] == "train", lost
+    assert re.match(r"worker lost during train \(attempt 1\) at '.*'; retrying from checkpoint (\d+)",
+                    lost["message"]), lost["message"]
+    assert int(re.search(r"checkpoint (\d+)", lost["message"])[1]) >= ckpt
+    ready = wait_for("/ready to miss the worker", lambda: (r if not (r := httpx.get(f"{live.url}/ready").json())
+                                                           ["workers_ok"] else None), timeout=40)
+    assert ready["workers"]["cpu"] == 0 and "no worker consumes the 'cpu' queue" in ready["warnings"], ready
     live.start_worker()
+    ready = wait_for("/ready to see the new worker", lambda: (r if (r := httpx.get(f"{live.url}/ready").json())
+                                                              ["workers_ok"] else None), timeout=30)
+    assert ready["workers"] == {"cpu": 1, "gpu": 0, "surveys": 1}, ready
     final = wait_job(c, jid, {"done", "failed", "cancelled"}, timeout=240,
                      on_poll=lambda s: progress.append(s["progress"]))
     progress.append(final["progress"])
@@ -82,6 +97,10 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
     # exactly one completed run; the train stage ran twice (the killed attempt and the resumed one)
     assert final["completed_runs"] == 1 and [r["outcome"] for r in final["runs"]] == ["done"]
     assert stage(final, "train")["attempts"] == 2 and stage(final, "sfm")["attempts"] == 1
+    # every attempt stays in the stage's record: the lost one with its last progress message, then the one that ran
+    assert [(a["attempt"], a["outcome"]) for a in stage(final, "train")["history"]] == [(1, "worker_lost"),
+                                                                                         (2, "done")]
+    assert "iteration" in stage(final, "train")["history"][0]["last"]
     assert all(s["status"] == "done" and s["seconds"] is not None for s in final["stages"])
     # training resumed from the checkpoint it had written before the kill, and continued from there
     log = job_log(c, jid)
@@ -173,6 +192,8 @@ def _tar(members: list[tuple[tarfile.TarInfo, bytes | None]]) -> bytes:
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w") as tf:
         for info, data in members:
+            if data is not None:
+                info.size = len(data)
             tf.addfile(info, io.BytesIO(data) if data is not None else None)
     return buf.getvalue()
 
@@ -184,6 +205,31 @@ def _tar_info(name: str, kind: bytes, link: str = "") -> tarfile.TarInfo:
 
 
 ESCAPE_NAME = f"dualphys-evil-{uuid.uuid4().hex[:8]}.jpg"
+
+
+def _dot_tar(files: dict[str, bytes], mode: str) -> bytes:
+    """What `tar cf x.tar -C images .` writes: a '.' member, then './'-prefixed names."""
+    import tempfile
+
+    buf = io.BytesIO()
+    with tempfile.TemporaryDirectory() as d:
+        for name, data in files.items():
+            (Path(d) / name).parent.mkdir(parents=True, exist_ok=True)
+            (Path(d) / name).write_bytes(data)
+        with tarfile.open(fileobj=buf, mode=mode) as tf:
+            tf.add(d, arcname=".")
+    return buf.getvalue()
+
+
+def _zip_method(data: bytes, method: int) -> bytes:
+    """A stored zip relabelled with another compression method (9: deflate64, which zipfile cannot decode)."""
+    out = bytearray(data)
+    for sig, at in ((b"PK\x03\x04", 8), (b"PK\x01\x02", 10)):
+        i = out.find(sig)
+        while i >= 0:
+            out[i + at:i + at + 2] = method.to_bytes(2, "little")
+            i = out.find(sig, i + 4)
+    return bytes(out)
 
 
 def hostile_cases() -> dict[str, tuple]:
@@ -230,10 +276,33 @@ def hostile_cases() -> dict[str, tuple]:
         "wrong_content_type": (b'{"images": []}', "application/json", 415, "unsupported_media_type"),
         "malformed_multipart": (b"--nope\r\nnot really\r\n", "multipart/form-data; boundary=zzz", 400,
                                 "malformed_multipart"),
+        # issue 13
+        "encrypted_zip": (encrypted_zip(good), None, 422, "encrypted_archive"),
+        "encrypted_zip_raw_body": (encrypted_zip(good, b"pw"), "application/zip", 422, "encrypted_archive"),
+        "deflate64_zip": (_zip_method(full, 9), None, 422, "unsupported_compression"),
+        "dot_slash_tar_gz": (_dot_tar(good, "w:gz"), "application/gzip", 201, None),
+        "dot_slash_tar": (_dot_tar(good, "w"), "application/x-tar", 201, None),
+        "dot_slash_escape": (_tar([(_tar_info(".", tarfile.DIRTYPE), None)]
+                                  + [(_sized(f"./{n}"), d) for n, d in good.items()]
+                                  + [(_sized(f"./../{ESCAPE_NAME}"), jpeg)]), "application/x-tar", 422, "path_escape"),
+        "dot_slash_regular_file": (_tar([(_sized(f"./{n}"), d) for n, d in good.items()] + [(_sized("./"), b"x")]),
+                                   "application/x-tar", 422, "bad_name"),
+        "over_long_member_name": (zip_bytes({**good, "a" * 300 + ".jpg": jpeg}), None, 422, "name_too_long"),
+        "over_long_member_path": (zip_bytes({**good, "/".join(["d" * 200] * 6) + "/x.jpg": jpeg}), None,
+                                  422, "name_too_long"),
+        "file_field_not_archive": (full, "field:file", 400, "unexpected_file"),
+        "unknown_file_field": (full, "field:upload", 400, "unexpected_file"),
     }
 
 
+def _sized(name: str) -> tarfile.TarInfo:
+    info = tarfile.TarInfo(name)
+    info.type = tarfile.REGTYPE
+    return info
+
+
 CASES = hostile_cases()
+assert len(CASES) >= 30  # issue 13: the suite covers at least 30 hostile or broken uploads
 
 
 def _snapshot(root: Path) -> set[str]:
@@ -254,11 +323,14 @@ def test_hostile_or_broken_upload(live, hostile_baseline, case: str) -> None:
     before = _snapshot(live.root)
     if ctype is None:
         r = upload(c, body, filename=f"{case}.zip")
+    elif ctype.startswith("field:"):
+        r = c.post("/v1/jobs", files={ctype[6:]: (f"{case}.zip", body, "application/zip")})
     else:
         r = c.post("/v1/jobs", content=body, headers={"Content-Type": ctype})
     assert r.status_code == status, r.text
     if code is not None:
         assert r.json()["error"]["code"] == code and r.json()["error"]["message"], r.text
+    assert str(live.root) not in r.text and "/jobs/" not in r.text  # no server path in any answer
     new = _snapshot(live.root) - before
     new_jobs = set(os.listdir(live.data_dir / "jobs")) - existing_jobs
     if status == 201:
@@ -329,7 +401,7 @@ def test_survey_folder_yields_one_job_per_set_across_scans_and_a_beat_restart(li
     sid = alice.post("/v1/surveys", json={"path": str(reef), "interval_s": 1, "name": "reef"}).json()["id"]
     # a second survey from the config file, images directly in its folder (grouped by capture-time gaps)
     bobs = live.survey_root / "bob-site"
-    _write_set(bobs, 3, seed=200)
+    _write_set(bobs, 4, seed=200)
     (live.root / "surveys.toml").write_text(f'[[survey]]\nname = "bob-site"\npath = "{bobs}"\nowner = "bob"\n'
                                             f"interval_s = 1\n")
     beat = live.start_beat()
@@ -348,7 +420,7 @@ def test_survey_folder_yields_one_job_per_set_across_scans_and_a_beat_restart(li
         job = jobs["jobs"][0]
         assert job["source"]["set"] == "dive-01" and job["source"]["images"] == 4
         # a new set appears: exactly one more job, the first set is not submitted again
-        _write_set(reef / "dive-02", 3, seed=300)
+        _write_set(reef / "dive-02", 4, seed=300)
         n = scans()
         wait_for("a scan after the new set", lambda: scans() >= n + 1, timeout=60)
         sets = alice.get(f"/v1/surveys/{sid}").json()["sets"]

@@ -5,6 +5,7 @@ redelivery, locking, cancel, failure codes and crash limits, without Celery or t
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -144,6 +145,29 @@ def test_a_stage_whose_worker_keeps_dying_fails_the_job(rt, calls) -> None:
     assert execute_stage(rt, job_id, STAGES[0], run_id).status == "failed"
     m = rt.store.read(job_id)
     assert m.state == "failed" and m.error.code == "worker_lost" and calls == []
+    assert m.stage(STAGES[0]).status == "failed"
+    assert [a.outcome for a in m.stage(STAGES[0]).history] == ["worker_lost"]  # the last lost attempt is kept
+
+
+def test_every_attempt_stays_in_the_stage_record(rt, calls) -> None:
+    """Issue 13, item 6: a stage whose first worker died shows both attempts, the lost one with its last
+    progress message, and the status says the worker is lost while nobody holds the job."""
+    job_id, run_id = new_job(rt)
+    m = rt.store.read(job_id)
+    rec = m.stage(STAGES[0])
+    rec.status, rec.attempts, rec.started_at = "running", 1, time.time() - 5
+    m.state, m.current_stage, m.message = "running", STAGES[0], "iteration 235/600"
+    rt.store.write(m)
+    rt.store.append_log(job_id, "INFO pipeline.checkpoint: checkpoint written: train/latest.pt (iteration 120)")
+    view = rt.jobs.view(rt.store.read(job_id))  # nobody holds the run lock: the worker is gone
+    assert view.worker_lost and view.state == "running"
+    assert view.message.startswith(f"worker lost during {STAGES[0]} (attempt 1) at 'iteration 235/600'")
+    assert execute_stage(rt, job_id, STAGES[0], run_id).status == "ran"
+    m = rt.store.read(job_id)
+    hist = m.stage(STAGES[0]).history
+    assert [(a.attempt, a.outcome) for a in hist] == [(1, "worker_lost"), (2, "done")]
+    assert hist[0].last == "iteration 235/600" and m.stage(STAGES[0]).attempts == 2
+    assert not rt.jobs.view(m).worker_lost
 
 
 def test_retry_resumes_from_the_failed_stage(rt, calls) -> None:

@@ -241,3 +241,34 @@ def test_surveys_file_entries_with_bad_options_are_skipped(tmp_path: Path) -> No
     with pytest.raises(SurveyError, match="iterations: at most 100") as e:
         reg.register("a", str(root / "too-long"), 60, None, SurveyOptions(iterations=500))
     assert e.value.code == "invalid_options" and reg.all() == reg.from_config()
+
+
+def test_owner_roots_and_first_claims(tmp_path: Path) -> None:
+    """Issue 13, item 1: shared roots are first come, first served per folder; an owner's own roots are closed to
+    everyone else; the surveys file cannot hand another owner's folder over."""
+    root = tmp_path / "roots"
+    for name in ("alice-only/site", "shared/a", "shared/b", "shared/b/inner"):
+        (root / name).mkdir(parents=True)
+    conf = tmp_path / "surveys.toml"
+    conf.write_text(f'[[survey]]\npath = "{root / "shared/b/inner"}"\nowner = "bob"\n')
+    reg = SurveyRegistry(tmp_path / "surveys", [root / "shared", root / "alice-only"], conf, 1.0,
+                         owner_roots={"alice": [root / "alice-only"]})
+    with pytest.raises(SurveyError) as e:
+        reg.register("bob", str(root / "alice-only/site"), 60, None, SurveyOptions())
+    assert e.value.code == "path_not_allowed"
+    assert reg.register("alice", str(root / "alice-only/site"), 60, None, SurveyOptions()).owner == "alice"
+    a = reg.register("alice", str(root / "shared/a"), 60, None, SurveyOptions())
+    conf.write_text(conf.read_text() + f'[[survey]]\npath = "{root / "shared/a"}"\nowner = "carol"\n')
+    # carol's surveys-file entry, added after alice registered that folder, is left out; bob's entry stays
+    assert sorted((s.owner, Path(s.path).name) for s in reg.all() if s.origin == "config") == [("bob", "inner")]
+    for owner, folder in (("bob", "shared/a"), ("alice", "shared/b"), ("alice", "shared/b/inner")):
+        with pytest.raises(SurveyError) as e:
+            reg.register(owner, str(root / folder), 60, None, SurveyOptions())
+        assert e.value.code == "path_taken", (owner, folder)
+    # at scan time the folder is checked again: replaced by a link, it is refused before anything is read
+    assert reg.check_folder(a) == (root / "shared").resolve()
+    (root / "shared/a").rename(root / "shared/a-old")
+    (root / "shared/a").symlink_to(tmp_path)
+    with pytest.raises(SurveyError) as e:
+        reg.check_folder(a)
+    assert e.value.code == "path_changed"

@@ -20,6 +20,17 @@ def health() -> HealthOut:
     return HealthOut(status="ok")
 
 
+def _workers(services) -> tuple[dict[str, int], list[str]]:
+    """Live workers per queue, and a warning for each queue jobs need that nobody consumes. The API stays
+    ready without workers (uploads are accepted and queued); the warnings say why nothing would run."""
+    from service.dispatch import CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE
+
+    live = services.coord.workers()
+    per_queue = {q: sum(q in qs for qs in live.values()) for q in (CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE)}
+    needed = [CPU_QUEUE, SURVEY_QUEUE] + ([GPU_QUEUE] if services.settings.train_queue == GPU_QUEUE else [])
+    return per_queue, [f"no worker consumes the {q!r} queue" for q in needed if not per_queue[q]]
+
+
 @router.get("/ready", response_model=ReadyOut, summary="Readiness",
             responses={503: {"description": "not ready: the error body plus the checks"}})
 def ready(services: ServicesDep) -> JSONResponse:
@@ -31,8 +42,10 @@ def ready(services: ServicesDep) -> JSONResponse:
             writable = True
     except OSError:
         free, writable = 0, False
+    per_queue, warnings = _workers(services) if redis_ok else ({}, [])
     body = ReadyOut(status="ready", redis=redis_ok, data_dir_writable=writable, disk_free_bytes=free,
-                    min_free_bytes=s.min_free_bytes)
+                    min_free_bytes=s.min_free_bytes, workers=per_queue, workers_ok=redis_ok and not warnings,
+                    warnings=warnings)
     problems = [msg for bad, msg in ((not redis_ok, "Redis is not reachable"),
                                      (not writable, "the data folder is not writable"),
                                      (free < s.min_free_bytes, "the data disk is nearly full")) if bad]

@@ -18,6 +18,8 @@ from service.api.schemas.requests import JobCreateOptions
 from service.api.schemas.responses import ErrorOut, JobList, JobOut, LogOut
 from service.dispatch import DispatchError
 from service.jobs import JobConflict, JobOps
+from service.manifest import Manifest
+from service.redact import redact_paths
 from service.settings import Settings
 from service.store import JobNotFound, new_job_id
 from service.uploads import UploadError, check_declared_length, receive_upload
@@ -69,20 +71,20 @@ async def create_job(
 ) -> JobOut:
     """Streams the archive into a new job folder (byte cap), validates and unpacks it by running the ingest
     stage (hostile archives, undecodable images and too-small sets are refused here with a 4xx), then queues
-    the remaining stages. With ``Idempotency-Key``, repeating the request returns the first job (200)."""
+    the remaining stages. With ``Idempotency-Key``, repeating the request (same archive, same options) returns
+    the first job (200); the same key with another archive or other options is a 422."""
     settings, jobs, coord = services.settings, services.jobs, services.coord
     job_id = new_job_id()
+    first: Manifest | None = None
     if idempotency_key is not None:
-        held = await anyio.to_thread.run_sync(coord.claim_idempotency, owner, idempotency_key, job_id)
+        held = await anyio.to_thread.run_sync(_claim_key, services, owner, idempotency_key, job_id)
         if held is not None:
             if held.startswith("pending:"):
                 raise api_error(409, "idempotency_in_progress", "a request with this Idempotency-Key is in progress")
             try:
-                m = await anyio.to_thread.run_sync(jobs.get, held, owner)
+                first = await anyio.to_thread.run_sync(jobs.get, held, owner)
             except JobNotFound:
                 raise api_error(409, "idempotency_key_used", "this Idempotency-Key belonged to a deleted job") from None
-            response.status_code = 200
-            return _view(jobs, m)
     job_dir = jobs.job_dir(job_id)
     created = False
     try:
@@ -102,6 +104,13 @@ async def create_job(
             raise UploadError(422, "invalid_options", msg) from None
         if (why := options.over_limit(settings.max_iterations)) is not None:
             raise UploadError(422, "invalid_options", why)
+        if first is not None:  # a repeat: the same request gets the first job, another request an error
+            if not _same_request(first, up.sha256, options.model_dump()):
+                raise UploadError(422, "idempotency_key_reused",
+                                  f"this Idempotency-Key was used for job {first.id} with a different archive or "
+                                  f"other options; use a new key for a new job")
+            response.status_code = 200
+            return _view(jobs, first)
         opts = {**options.model_dump(), "source": str(up.path)}
         async with services.ingest_slots:  # type: ignore[attr-defined]
             result, seconds = await anyio.to_thread.run_sync(_run_ingest, settings, job_dir, up.path, opts)
@@ -110,27 +119,47 @@ async def create_job(
                                                                ingest_seconds=seconds))
         created = True
         if idempotency_key is not None:
-            await anyio.to_thread.run_sync(coord.confirm_idempotency, owner, idempotency_key, job_id)
+            await anyio.to_thread.run_sync(_confirm_key, services, owner, idempotency_key, job_id)
     except UploadError as e:
         raise api_error(e.status, e.code, str(e)) from None
     except DispatchError as e:
         created = True  # the job exists, failed with broker_unavailable; POST .../retry re-sends it
         if idempotency_key is not None:
             try:
-                coord.confirm_idempotency(owner, idempotency_key, job_id)
+                _confirm_key(services, owner, idempotency_key, job_id)
             except Exception as err:  # Redis is likely down too; the key then expires by itself
                 log.warning("could not record idempotency key: %s", err)
         raise api_error(503, "broker_unavailable", f"{e} (job {job_id} was created; retry it later)") from None
     finally:
         if not created:
             shutil.rmtree(job_dir, ignore_errors=True)
-            if idempotency_key is not None:
+            if idempotency_key is not None and first is None:
                 try:
                     coord.release_idempotency(owner, idempotency_key, job_id)
                 except Exception as e:  # the key expires by itself
                     log.warning("could not release idempotency key: %s", e)
     response.headers["Location"] = f"/v1/jobs/{job_id}"
     return _view(jobs, m)
+
+
+def _claim_key(services, owner: str, key: str, job_id: str) -> str | None:
+    """None when ``key`` is new (claimed for ``job_id``), else what holds it: a job id, or ``pending:<id>``.
+    The record on disk is asked first: it survives a Redis that lost its data (service.idempotency)."""
+    rec = services.idempotency.lookup(owner, key)
+    if rec is not None:
+        return rec.job_id
+    return services.coord.claim_idempotency(owner, key, job_id)
+
+
+def _confirm_key(services, owner: str, key: str, job_id: str) -> None:
+    services.idempotency.record(owner, key, job_id)
+    services.coord.confirm_idempotency(owner, key, job_id)
+
+
+def _same_request(first: Manifest, sha256: str, options: dict) -> bool:
+    """A repeat of the request that made ``first``: the same archive bytes and the same options."""
+    kept = {k: v for k, v in first.options.items() if k != "source"}
+    return first.source.get("sha256") == sha256 and kept == options
 
 
 def _run_ingest(settings: Settings, job_dir: Path, archive: Path, opts: dict) -> tuple[dict, float]:
@@ -148,8 +177,9 @@ def _run_ingest(settings: Settings, job_dir: Path, archive: Path, opts: dict) ->
     try:
         result, _ = run_marked(job_dir, "ingest", stage_config(JobOptions.from_json(opts), "ingest"),
                                lambda: ingest(archive, job_dir, cfg).to_json())
-    except (ArchiveError, IngestError) as e:
-        raise UploadError(REFUSAL_STATUS.get(e.code, 422), e.code, str(e)) from None
+    except (ArchiveError, IngestError) as e:  # messages name members as in the archive; redacting is a safety net
+        raise UploadError(REFUSAL_STATUS.get(e.code, 422), e.code,
+                          redact_paths(str(e), job_dir, settings.data_dir)) from None
     return result, round(time.time() - t0, 3)
 
 

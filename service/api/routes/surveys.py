@@ -13,7 +13,7 @@ from service.surveys import Survey, SurveyError, SurveyNotFound, SurveyRegistry
 
 router = APIRouter(prefix="/v1/surveys", tags=["surveys"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 409, 422, 503)}
-SURVEY_ERROR_STATUS = {"survey_exists": 409, "survey_from_config": 409, "path_not_allowed": 403,
+SURVEY_ERROR_STATUS = {"survey_exists": 409, "survey_from_config": 409, "path_taken": 409, "path_not_allowed": 403,
                        "surveys_disabled": 403}
 
 
@@ -22,7 +22,8 @@ def _out(registry: SurveyRegistry, s: Survey) -> SurveyOut:
     sets = [SubmittedSetOut(set_hash=h, **v.model_dump()) for h, v in st.sets.items()]
     return SurveyOut(id=s.id, name=s.name, path=s.path, interval_s=s.interval_s, options=s.options.model_dump(),
                      origin=s.origin, created_at=s.created_at, last_scan_at=st.last_scan_at or None, scans=st.scans,
-                     last_error=st.last_error, sets=sorted(sets, key=lambda x: x.submitted_at))
+                     last_error=st.last_error, last_error_code=st.last_error_code,
+                     waiting=[w.model_dump() for w in st.waiting], sets=sorted(sets, key=lambda x: x.submitted_at))
 
 
 def _get(registry: SurveyRegistry, survey_id: str, owner: str) -> Survey:

@@ -17,6 +17,14 @@ class ErrorOut(BaseModel):
     error: ErrorDetail
 
 
+class AttemptOut(BaseModel):
+    attempt: int
+    started_at: float | None
+    ended_at: float | None
+    outcome: str = Field(..., description="done | failed | cancelled | worker_lost")
+    last: str = Field("", description="the attempt's last progress message")
+
+
 class StageOut(BaseModel):
     name: str
     status: str
@@ -25,6 +33,7 @@ class StageOut(BaseModel):
     seconds: float | None
     attempts: int
     skipped: bool
+    history: list[AttemptOut] = Field(default_factory=list, description="every attempt that ended or was lost")
 
 
 class JobErrorOut(BaseModel):
@@ -56,6 +65,8 @@ class RunOut(BaseModel):
 class JobOut(BaseModel):
     id: str
     state: str = Field(..., description="queued | running | cancelling | done | failed | cancelled")
+    worker_lost: bool = Field(False, description="the running stage's worker is gone; the stage waits to be "
+                                                 "delivered again (the message says from where it resumes)")
     stage: str | None = Field(None, description="the stage running now (or last run)")
     progress: float = Field(..., ge=0, le=100, description="0-100, never decreases")
     message: str
@@ -81,7 +92,8 @@ class JobOut(BaseModel):
             skipped, ignored = m.ingest.get("skipped", []), m.ingest.get("ignored", [])
             ingest = IngestOut(images=len(m.ingest.get("images", [])), skipped=skipped[:LIST_CAP],
                                skipped_count=len(skipped), ignored=ignored[:LIST_CAP], ignored_count=len(ignored))
-        return cls(id=m.id, state=v.state, stage=v.stage, progress=v.progress, message=v.message,
+        return cls(id=m.id, state=v.state, worker_lost=v.worker_lost, stage=v.stage, progress=v.progress,
+                   message=v.message,
                    created_at=m.created_at, updated_at=m.updated_at,
                    options={k: val for k, val in m.options.items() if k != "source"}, source=source,
                    survey_id=m.survey_id, stages=stages, error=JobErrorOut(**m.error.model_dump()) if m.error else None,
@@ -134,7 +146,11 @@ class SurveyOut(BaseModel):
     created_at: float
     last_scan_at: float | None
     scans: int
-    last_error: str | None
+    last_error: str | None = Field(..., description="why the last scan submitted nothing (folder replaced by a "
+                                                    "link, outside the roots, claimed by another owner ...)")
+    last_error_code: str | None = None
+    waiting: list[dict] = Field(default_factory=list, description="sets the last scan found but did not submit, "
+                                                                  "with the reason (too few images, settling)")
     sets: list[SubmittedSetOut]
 
 
@@ -157,3 +173,8 @@ class ReadyOut(BaseModel):
     data_dir_writable: bool
     disk_free_bytes: int
     min_free_bytes: int
+    workers: dict[str, int] = Field(default_factory=dict, description="live workers per queue (cpu, gpu, surveys), "
+                                                                      "from their Redis heartbeats")
+    workers_ok: bool = Field(False, description="some worker consumes the cpu queue (stages) and the surveys queue "
+                                                "(scans), and the gpu queue when training is routed there")
+    warnings: list[str] = Field(default_factory=list)
