@@ -184,6 +184,9 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
         if self.medium is not None:
             self.medium.step()
+            grad = out.info["means2d"].grad
+            if grad is not None:  # the photo's gradients are A times the scene's: densify on the scene's scale
+                grad.mul_(self.medium.densify_gain(i))
         event = self.densifier.post_backward(self.gaussians, self.optimizers, it, out.info)
         self.iteration = it
         metrics = {"loss": float(loss.detach()), **terms, "n_gaussians": float(len(self.gaussians["means"])),

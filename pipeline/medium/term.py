@@ -55,6 +55,21 @@ def surface_pixels(scene: Scene, view: View, device: torch.device) -> Tensor:
     return torch.as_tensor(np.unique(y * w + x), dtype=torch.long, device=device)
 
 
+MIN_DENSIFY_TRANSMISSION = 0.05  # the densification gain 1/A is capped at 20
+
+
+def view_transmission(scene: Scene, views: Sequence[View], beta_D: Sequence[float]) -> list[float]:
+    """Per view: the direct transmission mean_c exp(−β_D,c · r) at the median range r from its camera to the
+    sparse points it sees (``beta_D`` in 1/scene-unit: the measured water, or the starting one); 1 for a view
+    that sees no point. The photo shows J·A, so its contrast, and every photometric gradient, is A times the
+    scene's; densification divides by it (``Trainer.step``)."""
+    from ..select import view_ranges
+
+    ranges = view_ranges(scene.points, views) if len(scene.points) else np.full(len(views), np.nan)
+    bd = np.asarray(beta_D, dtype=np.float64)
+    return [1.0 if not np.isfinite(r) else float(np.exp(-bd * r).mean()) for r in ranges]
+
+
 def _nchw(x: Tensor) -> Tensor:  # [H, W, C] → [1, C, H, W]
     return x.permute(2, 0, 1)[None]
 
@@ -86,6 +101,7 @@ class MediumTerm:
         self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
                     for v in views]  # per view [1, 1, H, W]
         self.surface = [surface_pixels(scene, v, device) for v in views]  # per view: flat pixel indices [K]
+        self.transmission = view_transmission(scene, views, init["init_beta"])  # per view: mean A at its range
         self.start = int(round(cfg.start_fraction * total_iterations))
         # Short runs scale the schedule: the paper's rates are for ~20k medium iterations.
         boost = max(1.0, cfg.lr_reference_iterations / max(1, total_iterations - self.start))
@@ -99,6 +115,13 @@ class MediumTerm:
         self.weights = LossWeights(**cfg.loss_weights) if cfg.loss_weights else LossWeights()
         log.info("medium %s: depth scale %.3f, starts at iteration %d, lr boost %.1f", mode, self.depth_scale,
                  self.start, boost)
+
+    def densify_gain(self, view_index: int) -> float:
+        """What the screen-space gradients of view ``view_index`` are multiplied by before densification reads
+        them: 1 / its transmission (capped), so the grow threshold means the same for the scene's radiance J
+        in murky water as in air. Without it a turbid scene (A ≈ 0.15) stayed at a tenth of its Gaussian budget
+        and its restoration was blurred (docs/DECISIONS.md)."""
+        return 1.0 / max(self.transmission[view_index], MIN_DENSIFY_TRANSMISSION)
 
     def active(self, iteration: int) -> bool:
         return iteration > self.start
