@@ -148,8 +148,9 @@ def seen_scores(names: Sequence[str], restored: list[tuple[np.ndarray, np.ndarra
                 photos: list[tuple[np.ndarray, np.ndarray]], seen: Sequence[np.ndarray]) -> dict[str, Any]:
     """Restored J and the photos against the clean images (``(image, clean)`` pairs) over only the pixels some
     training view saw (``GroundTruth.seen_by``), pooled and per view, with the share of pixels kept."""
-    per_view = [{"name": n, "fraction": float(m.mean()), "restored_psnr": pooled_psnr([pair], [m])}
-                for n, pair, m in zip(names, restored, seen, strict=True)]
+    per_view = [{"name": n, "fraction": float(m.mean()), "restored_psnr": pooled_psnr([pair], [m]),
+                 "input_psnr": pooled_psnr([photo], [m])}
+                for n, pair, photo, m in zip(names, restored, photos, seen, strict=True)]
     return {"restored_psnr": pooled_psnr(restored, seen), "input_psnr": pooled_psnr(photos, seen),
             "fraction": float(np.mean([m.mean() for m in seen])), "per_view": per_view,
             "rule": f"pixels whose true surface point a training view sees (in frame, depth within "
