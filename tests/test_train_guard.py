@@ -14,19 +14,19 @@ from pipeline.scene.loader import load_scene
 from pipeline.scene.synth import generate_scene
 from pipeline.train_guard import COLLAPSED_NAME, RECOVERY_NAME, ModelCollapsedError, safer_config, train_checked
 
-ITERATIONS = 150
+ITERATIONS = 120
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    root = generate_scene(SynthConfig(views=8, width=96, height=72, preset="turbid", seed=2),
+    root = generate_scene(SynthConfig(views=8, width=80, height=60, preset="turbid", seed=2),
                           tmp_path_factory.mktemp("g"))
     s = load_scene(root)
     return s, [read_image(root / "images" / v.name) for v in s.views]
 
 
 def _cfg() -> TrainConfig:
-    densify = DensifyConfig(refine_start=20, refine_stop=120, refine_every=15, reset_every=10_000,
+    densify = DensifyConfig(refine_start=20, refine_stop=100, refine_every=15, reset_every=10_000,
                             max_gaussians=20_000)
     return TrainConfig(mode="homogeneous", iterations=ITERATIONS, sh_degree_interval=40, densify=densify,
                        backend="cpu", log_every=0, checkpoint_every=0, medium=MediumConfig(start_fraction=0.3))
