@@ -191,6 +191,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     psnr = "n/a" if test.get("psnr") is None else f"{test['psnr']:.2f} dB"
     print(f"mode {train.get('mode', opts.mode)}, {train.get('n_gaussians', '?')} Gaussians; held-out PSNR with "
           f"water {psnr}; outputs in {out / 'output'}")
+    quality = train.get("quality") or {}
+    if quality:
+        pc = quality.get("point_coverage_min")
+        print(f"model quality: training views covered at least {100 * quality['coverage_min']:.1f} % of pixels"
+              + (f", {100 * pc:.1f} % of their sparse points" if pc is not None else "")
+              + f"; {quality['n_gaussians']} Gaussians of a budget of {quality['budget']}")
+        for w in quality.get("warnings", []):
+            print(f"warning: {w}", file=sys.stderr)
     print(json.dumps({"job": str(out), "skipped": bar.skipped, "mode": train.get("mode"),
                       "test_psnr": test.get("psnr"), "report": str(out / "output" / "report.html"),
                       "seconds": round(time.perf_counter() - t0, 1)}))

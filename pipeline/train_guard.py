@@ -31,6 +31,8 @@ RECOVERY_NAME = "recovery.json"
 COLLAPSED_NAME = "collapsed.pt"
 SAFER_SURFACE_FACTOR = 5.0  # the surface term's weight in the safer schedule, x the default
 SAFER_MEDIUM_START = 0.5  # the medium switches on no earlier than half-way in the safer schedule
+MIN_GUARDED_ITERATIONS = 1000  # shorter runs (quick looks, tests) are measured and warned about, never retried:
+#                                a model a few hundred steps old has not covered its views yet, it has not lost them
 
 
 class ModelCollapsedError(RuntimeError):
@@ -75,11 +77,13 @@ def _assess(ckpt: Path, scene: Scene, cfg: TrainConfig) -> dict:
     return assess_state(state, scene, views, gaussian_budget(views, cfg.densify.max_gaussians), cfg.backend)
 
 
-def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_dir: str | Path,
-                  **train_kwargs: Any) -> tuple[TrainResult, dict, dict | None]:
+def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_dir: str | Path, *,
+                  min_iterations: int = MIN_GUARDED_ITERATIONS, **train_kwargs: Any
+                  ) -> tuple[TrainResult, dict, dict | None]:
     """:func:`pipeline.train.train` with the collapse check. Returns (result, quality, recovery); ``recovery`` is
     None when the first attempt held its scene, else what happened (the first attempt's warnings, the changes).
-    Raises :class:`ModelCollapsedError` when the safer attempt collapses too."""
+    Raises :class:`ModelCollapsedError` when the safer attempt collapses too. Runs shorter than
+    ``min_iterations`` are measured and warned about but never retried or failed."""
     out = Path(checkpoint_dir)
     rec_path = out / RECOVERY_NAME
     recovery = json.loads(rec_path.read_text()) if rec_path.is_file() else None
@@ -87,6 +91,10 @@ def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_d
         res = train(scene, images, cfg, checkpoint_dir=out, **train_kwargs)
         quality = _assess(out / CHECKPOINT_NAME, scene, cfg)
         if not quality["collapsed"]:
+            return res, quality, None
+        if cfg.iterations < min_iterations:
+            quality["warnings"].append(f"a run of {cfg.iterations} iterations is too short to judge (under "
+                                       f"{min_iterations}): not retried")
             return res, quality, None
         log.warning("mode %s lost the scene (%s); retraining on a safer schedule", cfg.mode,
                     "; ".join(quality["warnings"]))

@@ -47,7 +47,7 @@ def _blank_at(iteration: int, times: list[int]):
 
 def test_a_healthy_run_has_no_recovery(scene, tmp_path):
     s, images = scene
-    res, quality, recovery = train_checked(s, images, _cfg(), tmp_path)
+    res, quality, recovery = train_checked(s, images, _cfg(), tmp_path, min_iterations=0)
     assert recovery is None and not quality["collapsed"] and quality["warnings"] == []
     assert quality["point_coverage_min"] >= 0.98 and quality["coverage_min"] > 0.9
     assert len(quality["per_view"]) == len(s.views) and quality["n_gaussians"] == res.gaussians["means"].shape[0]
@@ -55,13 +55,14 @@ def test_a_healthy_run_has_no_recovery(scene, tmp_path):
 
 def test_collapse_is_recovered_on_a_safer_schedule(scene, tmp_path):
     s, images = scene
-    res, quality, recovery = train_checked(s, images, _cfg(), tmp_path, hooks=[_blank_at(ITERATIONS, [1])])
+    res, quality, recovery = train_checked(s, images, _cfg(), tmp_path, min_iterations=0,
+                                           hooks=[_blank_at(ITERATIONS, [1])])
     assert recovery is not None and recovery["first_attempt"]["point_coverage_min"] == 0.0
     assert (tmp_path / COLLAPSED_NAME).is_file() and json.loads((tmp_path / RECOVERY_NAME).read_text()) == recovery
     assert not quality["collapsed"] and quality["point_coverage_min"] >= 0.98
     assert quality["warnings"][0].startswith("recovered: the first homogeneous attempt lost the scene")
     # A resumed stage goes straight to the safer attempt (its checkpoint is complete: nothing is retrained).
-    res2, quality2, recovery2 = train_checked(s, images, _cfg(), tmp_path)
+    res2, quality2, recovery2 = train_checked(s, images, _cfg(), tmp_path, min_iterations=0)
     assert recovery2 == recovery and res2.iteration == ITERATIONS
     torch.testing.assert_close(res2.gaussians["means"], res.gaussians["means"])
 
@@ -69,9 +70,17 @@ def test_collapse_is_recovered_on_a_safer_schedule(scene, tmp_path):
 def test_a_model_that_stays_blank_fails_with_model_collapsed(scene, tmp_path):
     s, images = scene
     with pytest.raises(ModelCollapsedError, match="lost the scene") as e:
-        train_checked(s, images, _cfg(), tmp_path, hooks=[_blank_at(ITERATIONS - 10, [1, 1])])
+        train_checked(s, images, _cfg(), tmp_path, min_iterations=0,
+                      hooks=[_blank_at(ITERATIONS - 10, [1, 1])])
     assert e.value.code == "model_collapsed"
     assert (tmp_path / COLLAPSED_NAME).is_file() and (tmp_path / "latest.pt").is_file()  # both attempts kept
+
+
+def test_a_short_run_is_warned_about_not_retried(scene, tmp_path):
+    s, images = scene
+    _, quality, recovery = train_checked(s, images, _cfg(), tmp_path, hooks=[_blank_at(ITERATIONS, [1])])
+    assert recovery is None and quality["collapsed"] and not (tmp_path / COLLAPSED_NAME).exists()
+    assert "too short to judge" in quality["warnings"][-1]
 
 
 def test_safer_config_changes_only_the_schedule_and_the_surface_term():
