@@ -130,6 +130,7 @@ class MediumConfig:
     losses: tuple[str, ...] = ("ab", "wat", "edge", "ms", "floater", "surface")  # enabled terms beyond L_basic
     loss_weights: dict[str, float] = field(default_factory=dict)  # overrides of pipeline.losses.LossWeights
     max_sh_degree: int = 1  # low-order SH keeps J view-consistent, so range-dependent colour goes to the water
+    densify_transmission: bool = True  # densify on the scene's scale: screen gradients / the view's transmission
     colour_prior: Literal["tracks", "grey_world"] = "tracks"  # L_attenuation: anchor β_D to the multi-view
     #   estimate from the sparse points (pipeline.medium.estimate), or the grey-world prior on J
     #   ("tracks" falls back to grey-world when the points cannot measure the water)

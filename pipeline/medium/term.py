@@ -121,6 +121,8 @@ class MediumTerm:
         them: 1 / its transmission (capped), so the grow threshold means the same for the scene's radiance J
         in murky water as in air. Without it a turbid scene (A ≈ 0.15) stayed at a tenth of its Gaussian budget
         and its restoration was blurred (docs/DECISIONS.md)."""
+        if not self.cfg.densify_transmission:
+            return 1.0
         return 1.0 / max(self.transmission[view_index], MIN_DENSIFY_TRANSMISSION)
 
     def active(self, iteration: int) -> bool:

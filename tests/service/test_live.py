@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import os
 import re
 import stat
@@ -136,6 +137,12 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
     report = c.get(by_path["output/report.json"]["url"]).json()
     assert report["schema_version"] >= 1 and report["model"]["n_gaussians"] == len(gaussians["means"])
     assert report["metrics"]["test"]["psnr"] > 10 and "output/report.html" in by_path
+    # issue 13: the report says what happened, in the client's terms: the upload's name and image count, the SfM
+    # summary, no server path anywhere; issue 11: the model's quality block
+    assert report["input"]["images"] == 12 and report["input"]["name"] and "/" not in report["input"]["name"]
+    assert report["sfm"]["registered"] >= 10 and report["sfm"]["total"] == 12
+    assert report["quality"]["n_gaussians"] == len(gaussians["means"]) and report["quality"]["per_view"]
+    assert str(live.data_dir) not in json.dumps(report)
     restored = sorted(p for p in by_path if p.startswith("output/restored/") and p.endswith(".png"))
     with_water = [p for p in by_path if p.startswith("output/with_water/") and p.endswith(".png")]
     assert len(restored) >= 10 and len(restored) == len(with_water), restored  # one per registered view
