@@ -143,6 +143,20 @@ def surface_loss(alpha: Tensor, pixels: Tensor) -> Tensor:
     return (1.0 - alpha.reshape(-1)[pixels]).mean()
 
 
+def point_depth_loss(D: Tensor, pixels: Tensor, ranges: Tensor) -> Tensor:
+    """Mean |log D − log r| at the pixels where the view saw sparse points, r their distances from the camera.
+    D [N,1,H,W] (distance along the ray), flat pixel indices [K], ranges [K] → []
+
+    Not in the paper. In murky water a Gaussian far behind the seabed renders as the veil B∞ whatever its colour
+    (its transmission is ~0), so distant Gaussians can paint a low-contrast patch of seabed as water while
+    covering it (alpha ≈ 1: ``surface_loss`` is satisfied) — and their colour, unconstrained, drifts until the
+    restored view is saturated there. The points say where the surface is (docs/DECISIONS.md)."""
+    if pixels.numel() == 0:
+        return D.new_zeros(())
+    d = D.reshape(-1)[pixels].clamp(min=1e-3 * float(ranges.min()))
+    return (d.log() - ranges.log()).abs().mean()
+
+
 def floater_loss(alpha: Tensor) -> Tensor:
     """Mean α(1 − α) of rendered alpha: semi-transparent haze made of Gaussians costs. [N,1,H,W] → []"""
     return (alpha * (1 - alpha)).mean()
@@ -159,6 +173,7 @@ class LossWeights:
     w_ms: float = 0.1  # w5
     w_floater: float = 0.005  # not in the paper: keeps the water column free of floaters
     w_surface: float = 0.05  # not in the paper: the sparse points' pixels stay covered (surface_loss)
+    w_point_depth: float = 0.05  # not in the paper: and render at the points' distance (point_depth_loss)
     mu: float = 0.1  # complementarity weight inside L_ab
     anchor: float = 4.0  # weight of the measured-water anchors inside L_attenuation and L_scattering (1 → 4:
     #                      restored J 20.4 → 21.2 dB on the SfM demo scene, β_D within 1–12 % of the truth)
@@ -172,7 +187,7 @@ def loss_terms(
     render: Tensor, target: Tensor, J: Tensor, A: Tensor, B: Tensor, B_frac: Tensor, D: Tensor, alpha: Tensor,
     depth_scale: float, w: LossWeights, alpha_w: float = 1.0, beta_w: float = 1.0,
     enabled: frozenset[str] = frozenset({"ab", "wat", "edge", "ms", "floater"}),
-    anchor: dict[str, tuple[Tensor, Tensor]] | None = None, surface: Tensor | None = None,
+    anchor: dict[str, tuple[Tensor, Tensor]] | None = None, surface: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
     """Eq. 13's terms: (raw terms for logging, weighted terms whose sum is L_total).
 
@@ -197,10 +212,12 @@ def loss_terms(
     if "floater" in enabled:
         raw["floater"] = floater_loss(alpha)
     if "surface" in enabled and surface is not None:
-        raw["surface"] = surface_loss(alpha, surface)
+        raw["surface"] = surface_loss(alpha, surface[0])
+        raw["point_depth"] = point_depth_loss(D, *surface)
     weights = {"basic": w.w_basic, "ab": w.w_ab, "wat": w.w_wat, "edge": w.w_edge, "ms": w.w_ms,
-               "floater": w.w_floater, "surface": w.w_surface}
-    weighted = {k: weights[k] * raw[k] for k in weights if k == "basic" or (k in enabled and k in raw)}
+               "floater": w.w_floater, "surface": w.w_surface, "point_depth": w.w_point_depth}
+    weighted = {k: weights[k] * raw[k] for k in weights
+                if k == "basic" or ((k in enabled or (k == "point_depth" and "surface" in enabled)) and k in raw)}
     return raw, weighted
 
 

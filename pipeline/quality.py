@@ -24,9 +24,11 @@ import numpy as np
 from .scene.types import Scene, Sightings, View
 
 COVER_ALPHA = 0.5  # a pixel is covered when the Gaussians' alpha is at least this
+POINT_DEPTH_TOL = 0.25  # a point's pixel renders its surface when the rendered distance is within 25 % of it
 COLLAPSE_POINT_COVERAGE = 0.9  # a view whose sparse points are covered less than this has lost its scene
 COLLAPSE_BUDGET_SHARE = 0.02  # fewer Gaussians than this share of the budget: the model collapsed
 WARN_POINT_COVERAGE = 0.98  # below this a view is reported as partly lost (a warning, not a failure)
+WARN_POINT_DEPTH = 0.5  # fewer of a view's points rendered at their distance than this: a warning (see below)
 
 
 @dataclass
@@ -36,38 +38,48 @@ class ViewQuality:
     point_coverage: float | None  # share of the view's sparse points on covered pixels; None without points
     water_share: float | None  # mean (water light / predicted light); None in mode 3dgs
     n_points: int = 0  # sparse points the view saw
+    point_depth: float | None = None  # share of those points whose pixel renders within POINT_DEPTH_TOL of their
+    #                                   distance: the surface is where the points are, not far behind as veil
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
 
-def view_points(scene: Scene, view: View) -> np.ndarray:
+def view_points(scene: Scene, view: View, with_ids: bool = False):
     """Pixel positions [K, 2] (pixel-centre convention, at ``view.camera``'s resolution) of the sparse points
-    ``view`` saw: its track observations when the model has them, else the points projecting inside it."""
+    ``view`` saw: its track observations when the model has them, else the points projecting inside it.
+    ``with_ids``: (positions, point indices [K]) instead."""
     s: Sightings | None = (scene.sightings or {}).get(view.name)
     if s is not None and len(s.xy):
-        return np.asarray(s.xy, dtype=np.float64) * (view.camera.width / s.width)
-    if not len(scene.points):
-        return np.zeros((0, 2))
-    u, v, _ = view.project(scene.points)
-    ok = np.isfinite(u) & (u >= 0) & (u < view.camera.width) & (v >= 0) & (v < view.camera.height)
-    return np.stack([u[ok], v[ok]], axis=1)
+        xy, ids = np.asarray(s.xy, dtype=np.float64) * (view.camera.width / s.width), np.asarray(s.point)
+    elif not len(scene.points):
+        xy, ids = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+    else:
+        u, v, _ = view.project(scene.points)
+        ok = np.isfinite(u) & (u >= 0) & (u < view.camera.width) & (v >= 0) & (v < view.camera.height)
+        xy, ids = np.stack([u[ok], v[ok]], axis=1), np.nonzero(ok)[0]
+    return (xy, ids) if with_ids else xy
 
 
 def view_quality(name: str, alpha: np.ndarray, points_xy: np.ndarray, water: np.ndarray | None = None,
-                 predicted: np.ndarray | None = None) -> ViewQuality:
-    """alpha [H, W]; points_xy [K, 2] pixel positions; water, predicted [H, W, 3] (medium modes)."""
+                 predicted: np.ndarray | None = None, rendered_range: np.ndarray | None = None,
+                 point_range: np.ndarray | None = None) -> ViewQuality:
+    """alpha [H, W]; points_xy [K, 2] pixel positions; water, predicted [H, W, 3] (medium modes); the rendered
+    distance along each pixel's ray [H, W] and the points' distances from the camera [K]."""
     h, w = alpha.shape
     covered = alpha >= COVER_ALPHA
-    pc = None
+    pc = pd = None
     if len(points_xy):
         x = np.clip(np.floor(points_xy[:, 0]).astype(int), 0, w - 1)
         y = np.clip(np.floor(points_xy[:, 1]).astype(int), 0, h - 1)
         pc = float(covered[y, x].mean())
+        if rendered_range is not None and point_range is not None:
+            rel = np.abs(rendered_range[y, x] / np.maximum(point_range, 1e-9) - 1.0)
+            pd = float(((rel <= POINT_DEPTH_TOL) & covered[y, x]).mean())
     share = None
     if water is not None and predicted is not None:
         share = float((water.sum(-1) / np.maximum(predicted.sum(-1), 1e-4)).clip(0, 1).mean())
-    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)))
+    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)), pd)
 
 
 def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: int) -> tuple[bool, list[str]]:
@@ -87,6 +99,12 @@ def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: in
     if thin:
         warnings.append(f"{len(thin)} training views partly uncovered (sparse points covered below "
                         f"{100 * WARN_POINT_COVERAGE:.0f}%: {', '.join(q.name for q in thin[:5])})")
+    deep = [q for q in views if q.point_depth is not None and q.point_depth < WARN_POINT_DEPTH]
+    if deep:
+        worst = min(deep, key=lambda q: q.point_depth or 0.0)
+        warnings.append(f"{len(deep)} training views render under {100 * WARN_POINT_DEPTH:.0f}% of their sparse points "
+                        f"at the points' distance (worst {worst.name} {100 * (worst.point_depth or 0):.0f}%): the "
+                        f"rest of the surface there is drawn far behind, where it shows only the water")
     if budget > 0 and n_gaussians < COLLAPSE_BUDGET_SHARE * budget:
         collapsed = True
         warnings.append(f"only {n_gaussians} Gaussians, {100 * n_gaussians / budget:.1f}% of the budget {budget}")
@@ -109,15 +127,21 @@ def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, 
 
     model = model_from_state(state)
     per_view = []
+    from .scene.types import ray_length_factor
+
+    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
     for v in views:
         o = render_outputs(model.gaussians, v, model.medium, model.sh_degree, backend, model.background)
         water = None if o.A is None else np.clip(o.I - o.J * o.A, 0, None)
-        per_view.append(view_quality(v.name, o.alpha, view_points(scene, v), water,
-                                     o.I if o.A is not None else None))
+        xy, ids = view_points(scene, v, with_ids=True)
+        per_view.append(view_quality(v.name, o.alpha, xy, water, o.I if o.A is not None else None,
+                                     o.depth * ray_length_factor(v.camera),
+                                     np.linalg.norm(pts[ids] - v.center, axis=1) if len(ids) else None))
     n = int(model.gaussians["means"].shape[0])
     collapsed, warnings = collapse_warnings(per_view, n, budget)
     opac = activate(model.gaussians).opacities.detach().cpu().numpy() if n else np.zeros(0)
     pcs = [q.point_coverage for q in per_view if q.point_coverage is not None]
+    pds = [q.point_depth for q in per_view if q.point_depth is not None]
     shares = [q.water_share for q in per_view if q.water_share is not None]
     return {
         "collapsed": collapsed,
@@ -127,9 +151,11 @@ def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, 
         "coverage_min": round(min((q.coverage for q in per_view), default=0.0), 4),
         "coverage_mean": round(float(np.mean([q.coverage for q in per_view])) if per_view else 0.0, 4),
         "point_coverage_min": round(min(pcs), 4) if pcs else None,
+        "point_depth_min": round(min(pds), 4) if pds else None,
         "water_share_mean": round(float(np.mean(shares)), 4) if shares else None,
         "opacity_histogram": opacity_histogram(opac),
         "limits": {"cover_alpha": COVER_ALPHA, "collapse_point_coverage": COLLAPSE_POINT_COVERAGE,
+                   "point_depth_tol": POINT_DEPTH_TOL, "warn_point_depth": WARN_POINT_DEPTH,
                    "collapse_budget_share": COLLAPSE_BUDGET_SHARE, "warn_point_coverage": WARN_POINT_COVERAGE},
         "per_view": [q.to_json() for q in per_view],
     }

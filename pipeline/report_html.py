@@ -223,15 +223,19 @@ def _quality(q: dict | None) -> str:
     line = (f"{q['n_gaussians']:,} Gaussians (budget {q['budget']:,}); training views covered (alpha ≥ 0.5): "
             f"at least {100 * q['coverage_min']:.1f}% of pixels"
             + (f", {100 * pc:.1f}% of their sparse points" if pc is not None else "")
+            + (f" ({100 * q['point_depth_min']:.0f}% or more of them at the points' distance)"
+               if q.get("point_depth_min") is not None else "")
             + (f"; water share of the predicted light {100 * q['water_share_mean']:.0f}%"
                if q.get("water_share_mean") is not None else ""))
     warn = "".join(f"<li>{escape(w)}</li>" for w in q.get("warnings", []))
     cls = "box" if warn else "ok"
-    rows = [[p["name"], p["coverage"], p["point_coverage"], p["water_share"]] for p in q.get("per_view", [])]
+    rows = [[p["name"], p["coverage"], p["point_coverage"], p.get("point_depth"), p["water_share"]]
+            for p in q.get("per_view", [])]
     return (f"<div class={cls}><b>Model quality</b>: {escape(line)}."
             + (f"<ul class=warn>{warn}</ul>" if warn else " No warnings.") + "</div>"
             + "<details><summary>coverage per training view</summary>"
-            + table(["view", "pixels covered", "sparse points covered", "water share"], rows, 3) + "</details>")
+            + table(["view", "pixels covered", "sparse points covered", "points at their distance", "water share"],
+                    rows, 3) + "</details>")
 
 
 def render_html(r: dict, pics: Pictures) -> str:

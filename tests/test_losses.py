@@ -110,3 +110,14 @@ def test_surface_loss_holds_the_sparse_points_covered():
     covered = torch.ones(1, 1, 4, 5)
     assert float(L.surface_loss(covered, pix)) == 0.0
     assert float(L.surface_loss(covered, torch.zeros(0, dtype=torch.long))) == 0.0
+
+
+def test_point_depth_loss_pulls_the_surface_to_the_points():
+    D = torch.full((1, 1, 4, 5), 50.0, requires_grad=True)  # a surface drawn far behind, where it shows only water
+    pix, r = torch.tensor([3, 11]), torch.tensor([5.0, 5.0])
+    loss = L.point_depth_loss(D, pix, r)
+    assert abs(float(loss.detach()) - float(torch.log(torch.tensor(10.0)))) < 1e-5
+    loss.backward()
+    g = D.grad.reshape(-1)
+    assert torch.all(g[pix] > 0) and int((g != 0).sum()) == 2  # descent brings those pixels nearer
+    assert float(L.point_depth_loss(torch.full((1, 1, 4, 5), 5.0), pix, r)) == 0.0

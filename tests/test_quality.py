@@ -56,3 +56,18 @@ def test_view_points_prefers_tracks_and_rescales_them():
 def test_opacity_histogram_bins_everything():
     h = opacity_histogram(np.array([0.001, 0.007, 0.3, 0.95, 1.0]))
     assert sum(h.values()) == 5 and h["0-0.005"] == 1 and h["0.9-1"] == 2
+
+
+def test_point_depth_tells_a_surface_drawn_far_behind_the_points():
+    alpha = np.ones((10, 10))
+    pts = np.array([[1.5, 1.5], [5.5, 5.5], [8.5, 2.5], [2.5, 8.5]])
+    near = np.full((10, 10), 4.0)
+    far = near.copy()
+    far[:, :5] = 55.0  # the left half rendered at 55 units: veil, not seabed
+    point_range = np.full(4, 4.2)
+    assert view_quality("v", alpha, pts, rendered_range=near, point_range=point_range).point_depth == 1.0
+    q = view_quality("v", alpha, pts, rendered_range=far, point_range=point_range)
+    assert q.point_depth == 0.5 and q.point_coverage == 1.0  # covered, but not at the surface
+    deep = view_quality("w", alpha, pts, rendered_range=np.full((10, 10), 55.0), point_range=point_range)
+    collapsed, warnings = collapse_warnings([deep], 5000, 10_000)
+    assert not collapsed and "drawn far behind" in warnings[0]

@@ -46,13 +46,22 @@ def scene_depth_scale(scene: Scene, views: Sequence[View]) -> float:
     return float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1))) or 1.0
 
 
-def surface_pixels(scene: Scene, view: View, device: torch.device) -> Tensor:
-    """Flat indices (y·W + x) of the distinct pixels where ``view`` saw sparse points, at its camera's size. [K]"""
-    xy = view_points(scene, view)
+def surface_pixels(scene: Scene, view: View, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The distinct pixels where ``view`` saw sparse points, at its camera's size: flat indices (y·W + x) [K] and
+    the distance from the camera to the nearest point on each [K] (scene units)."""
+    xy, ids = view_points(scene, view, with_ids=True)
     w, h = view.camera.width, view.camera.height
     x = np.clip(np.floor(xy[:, 0]).astype(np.int64), 0, w - 1)
     y = np.clip(np.floor(xy[:, 1]).astype(np.int64), 0, h - 1)
-    return torch.as_tensor(np.unique(y * w + x), dtype=torch.long, device=device)
+    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
+    r = np.linalg.norm(pts[ids] - view.center, axis=1) if len(ids) else np.zeros(0)
+    flat = y * w + x
+    order = np.lexsort((r, flat))  # per pixel, the nearest point first
+    flat, r = flat[order], r[order]
+    first = np.ones(len(flat), dtype=bool)
+    first[1:] = flat[1:] != flat[:-1]
+    return (torch.as_tensor(flat[first], dtype=torch.long, device=device),
+            torch.as_tensor(r[first], dtype=torch.float32, device=device))
 
 
 MIN_DENSIFY_TRANSMISSION = 0.05  # the densification gain 1/A is capped at 20
@@ -100,7 +109,7 @@ class MediumTerm:
         self.medium.water_factor.fill_(cfg.water_factor)
         self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
                     for v in views]  # per view [1, 1, H, W]
-        self.surface = [surface_pixels(scene, v, device) for v in views]  # per view: flat pixel indices [K]
+        self.surface = [surface_pixels(scene, v, device) for v in views]  # per view: (pixels [K], ranges [K])
         self.transmission = view_transmission(scene, views, init["init_beta"])  # per view: mean A at its range
         self.start = int(round(cfg.start_fraction * total_iterations))
         # Short runs scale the schedule: the paper's rates are for ~20k medium iterations.
