@@ -31,6 +31,11 @@ class SceneBudget:
         return asdict(self)
 
 
+def pixel_budget(pixels: int) -> int:
+    """``GAUSSIANS_PER_PIXEL`` x ``pixels`` (training pixels), before any clamp."""
+    return round(GAUSSIANS_PER_PIXEL * pixels)
+
+
 def scene_budget(n_views: int, width: int, height: int, preset_cap: int = 0, preset_sh: int = 3) -> SceneBudget:
     """Budget for ``n_views`` training images of ``width`` x ``height`` (training resolution), never above the
     preset's cap (0 = none) or SH degree."""
@@ -38,11 +43,11 @@ def scene_budget(n_views: int, width: int, height: int, preset_cap: int = 0, pre
         raise ValueError(f"scene_budget needs a positive view count and size, got {n_views} x {width}x{height}")
     pixels = n_views * width * height
     cap = preset_cap if preset_cap > 0 else MAX_GAUSSIANS
-    gaussians = min(cap, max(MIN_GAUSSIANS, round(GAUSSIANS_PER_PIXEL * pixels)))
+    gaussians = min(cap, max(MIN_GAUSSIANS, pixel_budget(pixels)))
     sh = 1 if n_views < SH_VIEWS[0] else 2 if n_views < SH_VIEWS[1] else 3
     if width < SH_MIN_WIDTH:
         sh = min(sh, 1)
     return SceneBudget(max_gaussians=int(gaussians), sh_degree=min(sh, preset_sh), training_pixels=pixels)
 
 
-__all__ = ["SceneBudget", "scene_budget"]
+__all__ = ["SceneBudget", "pixel_budget", "scene_budget"]

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .budget import GAUSSIANS_PER_PIXEL
+from .budget import pixel_budget
 from .checkpoint import load_checkpoint
 from .config import TrainConfig, from_dict, to_dict
 from .losses import LossWeights
@@ -63,11 +63,10 @@ def training_views(views: Sequence[View], downscale: int) -> list[View]:
 
 
 def gaussian_budget(views: Sequence[View], cap: int) -> int:
-    """What the Gaussian count is judged against: ``GAUSSIANS_PER_PIXEL`` x the training pixels (about twice
+    """What the Gaussian count is judged against: ``pipeline.budget.pixel_budget`` of the training pixels (about twice
     what published 3DGS runs end with, ``pipeline.budget``), never above the run's cap (0 = none). Not the cap
     alone: a preset's cap is the same for 12 thumbnails and 300 frames."""
-    pixels = sum(v.camera.width * v.camera.height for v in views)
-    per_pixel = round(GAUSSIANS_PER_PIXEL * pixels)
+    per_pixel = pixel_budget(sum(v.camera.width * v.camera.height for v in views))
     return min(cap, per_pixel) if cap > 0 else per_pixel
 
 

@@ -2,9 +2,10 @@
 float sums, so on a machine with ``libtbb`` a resumed training stopped matching the straight run.
 
 Each check runs in a fresh interpreter (numba picks its layer once per process). The pin must hold where TBB
-is present: the system's ``libtbb.so.12``, or a folder holding one named by ``DUALPHYS_TEST_TBB_LIBDIR``
-(e.g. unpacked from Debian's ``libtbb12`` with ``apt-get download libtbb12 && dpkg -x``), which is put on
-``LD_LIBRARY_PATH`` so the test needs no system-wide install that would change every other process's layer.
+is present. The dev install brings it: PyPI's ``tbb`` wheel puts ``libtbb.so.12`` in the environment's ``lib/``,
+which the test puts on ``LD_LIBRARY_PATH`` of the child interpreters only (``DUALPHYS_TEST_TBB_LIBDIR`` names
+another folder), so no other process's layer changes. Without a loadable TBB the test fails: it would
+otherwise prove nothing about TBB.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ print(numba.threading_layer())
 def _env(**extra: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")}
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
-    libdir = os.environ.get("DUALPHYS_TEST_TBB_LIBDIR")
+    libdir = os.environ.get("DUALPHYS_TEST_TBB_LIBDIR") or str(Path(sys.prefix) / "lib")
     if libdir:
         env["LD_LIBRARY_PATH"] = os.pathsep.join([libdir, *filter(None, [os.environ.get("LD_LIBRARY_PATH")])])
     env.update(extra)
@@ -71,15 +72,12 @@ def _tbb_available() -> bool:
 
 @pytest.mark.timeout(900)
 def test_kernels_never_use_tbb_and_repeat_bit_for_bit() -> None:
-    tbb = _tbb_available()
-    if tbb:  # the machine would give TBB to any kernel that does not pin its layer
-        assert _run(PLAIN) == "tbb"
+    assert _tbb_available(), ("libtbb is not loadable: the dev install provides it (pip's tbb wheel, in "
+                              f"{Path(sys.prefix) / 'lib'}), or set DUALPHYS_TEST_TBB_LIBDIR")
+    assert _run(PLAIN) == "tbb"  # the machine gives TBB to any kernel that does not pin its layer
     first = _run(RENDER).split()
     second = _run(RENDER).split()
     assert first[0] in ("omp", "workqueue"), first
     assert first == second  # same layer, same bits: forward and every gradient
     # an explicit choice still wins
     assert _run(RENDER, NUMBA_THREADING_LAYER="workqueue").split()[0] == "workqueue"
-    if not tbb:
-        pytest.skip("libtbb is not loadable here: the pin was checked, not against TBB "
-                    "(set DUALPHYS_TEST_TBB_LIBDIR to a folder with libtbb.so.12)")
