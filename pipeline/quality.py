@@ -29,6 +29,8 @@ COLLAPSE_POINT_COVERAGE = 0.9  # a view whose sparse points are covered less tha
 COLLAPSE_BUDGET_SHARE = 0.02  # fewer Gaussians than this share of the budget: the model collapsed
 WARN_POINT_COVERAGE = 0.98  # below this a view is reported as partly lost (a warning, not a failure)
 WARN_POINT_DEPTH = 0.5  # fewer of a view's points rendered at their distance than this: a warning (see below)
+FAR_FACTOR = 3.0  # a pixel rendered beyond this x the view's 95th-percentile point distance is "far behind"
+WARN_FAR_SHARE = 0.10  # more of a view's covered pixels far behind than this: a warning (real RUIE sand: 35 %)
 
 
 @dataclass
@@ -40,6 +42,8 @@ class ViewQuality:
     n_points: int = 0  # sparse points the view saw
     point_depth: float | None = None  # share of those points whose pixel renders within POINT_DEPTH_TOL of their
     #                                   distance: the surface is where the points are, not far behind as veil
+    far_share: float | None = None  # share of covered pixels rendered beyond FAR_FACTOR x the view's farthest points
+    #                                 (95th percentile): surface drawn far behind where points are too sparse to say
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
@@ -68,7 +72,7 @@ def view_quality(name: str, alpha: np.ndarray, points_xy: np.ndarray, water: np.
     distance along each pixel's ray [H, W] and the points' distances from the camera [K]."""
     h, w = alpha.shape
     covered = alpha >= COVER_ALPHA
-    pc = pd = None
+    pc = pd = fs = None
     if len(points_xy):
         x = np.clip(np.floor(points_xy[:, 0]).astype(int), 0, w - 1)
         y = np.clip(np.floor(points_xy[:, 1]).astype(int), 0, h - 1)
@@ -76,10 +80,12 @@ def view_quality(name: str, alpha: np.ndarray, points_xy: np.ndarray, water: np.
         if rendered_range is not None and point_range is not None:
             rel = np.abs(rendered_range[y, x] / np.maximum(point_range, 1e-9) - 1.0)
             pd = float(((rel <= POINT_DEPTH_TOL) & covered[y, x]).mean())
+            far = rendered_range > FAR_FACTOR * float(np.percentile(point_range, 95))
+            fs = float((far & covered).sum() / max(int(covered.sum()), 1))
     share = None
     if water is not None and predicted is not None:
         share = float((water.sum(-1) / np.maximum(predicted.sum(-1), 1e-4)).clip(0, 1).mean())
-    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)), pd)
+    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)), pd, fs)
 
 
 def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: int) -> tuple[bool, list[str]]:
@@ -105,6 +111,12 @@ def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: in
         warnings.append(f"{len(deep)} training views render under {100 * WARN_POINT_DEPTH:.0f}% of their sparse points "
                         f"at the points' distance (worst {worst.name} {100 * (worst.point_depth or 0):.0f}%): the "
                         f"rest of the surface there is drawn far behind, where it shows only the water")
+    far = [q for q in views if q.far_share is not None and q.far_share > WARN_FAR_SHARE]
+    if far:
+        worst = max(far, key=lambda q: q.far_share or 0.0)
+        warnings.append(f"{len(far)} training views draw part of their surface beyond {FAR_FACTOR:g}x their sparse "
+                        f"points' distance (worst {worst.name} {100 * (worst.far_share or 0):.0f}% of its pixels), "
+                        f"where it shows only the water: the restored image is dark there")
     if budget > 0 and n_gaussians < COLLAPSE_BUDGET_SHARE * budget:
         collapsed = True
         warnings.append(f"only {n_gaussians} Gaussians, {100 * n_gaussians / budget:.1f}% of the budget {budget}")
@@ -142,6 +154,7 @@ def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, 
     opac = activate(model.gaussians).opacities.detach().cpu().numpy() if n else np.zeros(0)
     pcs = [q.point_coverage for q in per_view if q.point_coverage is not None]
     pds = [q.point_depth for q in per_view if q.point_depth is not None]
+    fss = [q.far_share for q in per_view if q.far_share is not None]
     shares = [q.water_share for q in per_view if q.water_share is not None]
     return {
         "collapsed": collapsed,
@@ -152,6 +165,7 @@ def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, 
         "coverage_mean": round(float(np.mean([q.coverage for q in per_view])) if per_view else 0.0, 4),
         "point_coverage_min": round(min(pcs), 4) if pcs else None,
         "point_depth_min": round(min(pds), 4) if pds else None,
+        "far_share_max": round(max(fss), 4) if fss else None,
         "water_share_mean": round(float(np.mean(shares)), 4) if shares else None,
         "opacity_histogram": opacity_histogram(opac),
         "limits": {"cover_alpha": COVER_ALPHA, "collapse_point_coverage": COLLAPSE_POINT_COVERAGE,

@@ -71,3 +71,19 @@ def test_point_depth_tells_a_surface_drawn_far_behind_the_points():
     deep = view_quality("w", alpha, pts, rendered_range=np.full((10, 10), 55.0), point_range=point_range)
     collapsed, warnings = collapse_warnings([deep], 5000, 10_000)
     assert not collapsed and "drawn far behind" in warnings[0]
+
+
+def test_far_share_catches_surface_drawn_far_behind_between_the_points():
+    """Real RUIE sand: few points there, so point depth looks fine, but a quarter of the view renders at ~15x
+    the points' distance, showing only the veil (restored black)."""
+    alpha = np.ones((10, 10))
+    pts = np.array([[7.5, 1.5], [8.5, 5.5], [7.5, 8.5]])  # points only on the right
+    rng = np.full((10, 10), 10.0)
+    rng[:, :3] = 150.0  # the left 30 % drawn far behind
+    q = view_quality("v", alpha, pts, rendered_range=rng, point_range=np.array([9.5, 10.0, 10.5]))
+    assert q.point_depth == 1.0 and abs(q.far_share - 0.3) < 1e-9
+    collapsed, warnings = collapse_warnings([q], 5000, 10_000)
+    assert not collapsed and "beyond 3x" in warnings[0] and "30%" in warnings[0]
+    ok = view_quality("v", alpha, pts, rendered_range=np.full((10, 10), 10.0),
+                      point_range=np.array([9.5, 10.0, 10.5]))
+    assert ok.far_share == 0.0
