@@ -39,6 +39,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -157,6 +158,26 @@ def point_depth_loss(D: Tensor, pixels: Tensor, ranges: Tensor) -> Tensor:
     return (d.log() - ranges.log()).abs().mean()
 
 
+DEPTH_BAND = 2.0  # depth_band_loss lets the surface lie within this factor of its neighbourhood's point range
+
+
+def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, band: float = DEPTH_BAND) -> Tensor:
+    """Mean α·max(0, |log D − log R| − log ``band``) over all pixels, R the view's point range map upsampled
+    to the image. D, alpha [N,1,H,W], range_map [N,1,h,w] (:func:`pipeline.medium.term.point_range_map`) → []
+
+    Not in the paper. ``point_depth_loss`` holds the surface at the sparse points' own pixels; where SfM found
+    few points (bright, low-texture sand) Gaussians were still drawn far behind the seabed (real RUIE frames:
+    ~150 scene units against ~10), where they show only the veil, and the restored view was black there. A
+    surface is continuous with its neighbourhood, so every covered pixel is asked to lie within a factor of
+    ``band`` of the range its nearest points measured; relief inside the band costs nothing. α is detached:
+    the way out must not be to uncover the pixel, which is the shortcut this term closes."""
+    if range_map.numel() == 0:
+        return D.new_zeros(())
+    ref = F.interpolate(range_map.log(), size=D.shape[-2:], mode="bilinear", align_corners=False)
+    excess = ((D.clamp(min=1e-6).log() - ref).abs() - float(np.log(band))).clamp(min=0)
+    return (alpha.detach() * excess).mean()
+
+
 def floater_loss(alpha: Tensor) -> Tensor:
     """Mean α(1 − α) of rendered alpha: semi-transparent haze made of Gaussians costs. [N,1,H,W] → []"""
     return (alpha * (1 - alpha)).mean()
@@ -174,6 +195,7 @@ class LossWeights:
     w_floater: float = 0.005  # not in the paper: keeps the water column free of floaters
     w_surface: float = 0.05  # not in the paper: the sparse points' pixels stay covered (surface_loss)
     w_point_depth: float = 0.05  # not in the paper: and render at the points' distance (point_depth_loss)
+    w_depth_band: float = 0.05  # not in the paper: and every covered pixel near its points' range (depth_band_loss)
     mu: float = 0.1  # complementarity weight inside L_ab
     anchor: float = 4.0  # weight of the measured-water anchors inside L_attenuation and L_scattering (1 → 4:
     #                      restored J 20.4 → 21.2 dB on the SfM demo scene, β_D within 1–12 % of the truth)
@@ -188,6 +210,7 @@ def loss_terms(
     depth_scale: float, w: LossWeights, alpha_w: float = 1.0, beta_w: float = 1.0,
     enabled: frozenset[str] = frozenset({"ab", "wat", "edge", "ms", "floater"}),
     anchor: dict[str, tuple[Tensor, Tensor]] | None = None, surface: tuple[Tensor, Tensor] | None = None,
+    range_map: Tensor | None = None,
 ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
     """Eq. 13's terms: (raw terms for logging, weighted terms whose sum is L_total).
 
@@ -214,10 +237,14 @@ def loss_terms(
     if "surface" in enabled and surface is not None:
         raw["surface"] = surface_loss(alpha, surface[0])
         raw["point_depth"] = point_depth_loss(D, *surface)
+    if "surface" in enabled and range_map is not None:
+        raw["depth_band"] = depth_band_loss(D, alpha, range_map)
     weights = {"basic": w.w_basic, "ab": w.w_ab, "wat": w.w_wat, "edge": w.w_edge, "ms": w.w_ms,
-               "floater": w.w_floater, "surface": w.w_surface, "point_depth": w.w_point_depth}
+               "floater": w.w_floater, "surface": w.w_surface, "point_depth": w.w_point_depth,
+               "depth_band": w.w_depth_band}
+    with_surface = {"point_depth", "depth_band"}  # switched with the surface term
     weighted = {k: weights[k] * raw[k] for k in weights
-                if k == "basic" or ((k in enabled or (k == "point_depth" and "surface" in enabled)) and k in raw)}
+                if k == "basic" or ((k in enabled or (k in with_surface and "surface" in enabled)) and k in raw)}
     return raw, weighted
 
 

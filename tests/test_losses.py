@@ -121,3 +121,44 @@ def test_point_depth_loss_pulls_the_surface_to_the_points():
     g = D.grad.reshape(-1)
     assert torch.all(g[pix] > 0) and int((g != 0).sum()) == 2  # descent brings those pixels nearer
     assert float(L.point_depth_loss(torch.full((1, 1, 4, 5), 5.0), pix, r)) == 0.0
+
+
+def test_depth_band_loss_pulls_far_surfaces_in_and_never_uncovers():
+    ref = torch.full((1, 1, 2, 2), 10.0)  # the neighbourhood's points are at 10
+    D = torch.tensor([[[[10.0, 18.0, 150.0], [6.0, 6.0, 2.5]]]], requires_grad=True)
+    alpha = torch.tensor([[[[1.0, 1.0, 1.0], [1.0, 0.0, 1.0]]]], requires_grad=True)
+    loss = L.depth_band_loss(D, alpha, ref)
+    loss.backward()
+    g = D.grad.reshape(-1)
+    # Inside the band (5..20) nothing is asked; 150 is pulled in, 2.5 pushed out; an uncovered pixel is free.
+    assert g[0] == 0 and g[1] == 0 and g[3] == 0 and g[4] == 0
+    assert g[2] > 0 and g[5] < 0
+    expected = (torch.log(torch.tensor(15.0)) - torch.log(torch.tensor(2.0))
+                + torch.log(torch.tensor(4.0)) - torch.log(torch.tensor(2.0))) / 6
+    assert abs(float(loss.detach()) - float(expected)) < 1e-5
+    assert alpha.grad is None or float(alpha.grad.abs().sum()) == 0.0  # covering less is no way out
+    assert float(L.depth_band_loss(D.detach(), alpha.detach(), torch.zeros(0))) == 0.0
+
+
+def test_depth_band_loss_gradcheck():
+    g = torch.Generator().manual_seed(3)
+    D = (torch.rand(1, 1, 8, 8, generator=g, dtype=torch.float64) * 3 + 2.0).requires_grad_()  # all beyond the band
+    alpha = torch.rand(1, 1, 8, 8, generator=g, dtype=torch.float64)
+    ref = torch.full((1, 1, 2, 2), 0.5, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda d: L.depth_band_loss(d, alpha, ref), (D,), eps=1e-6, atol=1e-5)
+
+
+def test_point_range_map_follows_the_points_neighbourhood():
+    from types import SimpleNamespace
+
+    from pipeline.medium.term import point_range_map
+
+    W, H = 200, 100
+    view = SimpleNamespace(camera=SimpleNamespace(width=W, height=H))
+    xs = torch.randint(0, W, (400,), generator=torch.Generator().manual_seed(0))
+    ys = torch.randint(0, H, (400,), generator=torch.Generator().manual_seed(1))
+    ranges = torch.where(xs < W // 2, 4.0, 12.0)  # near on the left, far on the right
+    m = point_range_map(view, ys * W + xs, ranges)
+    assert m.shape[:2] == (1, 1) and m.shape[-1] <= 96 and torch.isfinite(m).all()
+    assert torch.allclose(m[..., :, :10], torch.tensor(4.0)) and torch.allclose(m[..., :, -10:], torch.tensor(12.0))
+    assert point_range_map(view, torch.zeros(0, dtype=torch.long), torch.zeros(0)).numel() == 0

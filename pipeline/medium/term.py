@@ -64,6 +64,31 @@ def surface_pixels(scene: Scene, view: View, device: torch.device) -> tuple[Tens
             torch.as_tensor(r[first], dtype=torch.float32, device=device))
 
 
+RANGE_MAP_CELLS = 96  # the reference range map has about this many cells along the image's long side
+RANGE_MAP_NEIGHBOURS = 8  # each cell takes the median range of this many nearest sparse-point pixels
+
+
+def point_range_map(view: View, pixels: Tensor, ranges: Tensor) -> Tensor:
+    """A coarse map of how far the surface is from the camera, everywhere in the view, from its sparse points:
+    each cell of a ~96-cell grid (long side) holds the median range of the 8 point pixels nearest its centre.
+    (pixels, ranges) as :func:`surface_pixels`. Returns [1, 1, h, w] (h, w: the grid), or an empty tensor when
+    the view saw no point. Its cost is bounded by the grid, not by the image size."""
+    W, H = view.camera.width, view.camera.height
+    if pixels.numel() == 0:
+        return ranges.new_zeros((0,))
+    cell = max(1, int(np.ceil(max(W, H) / RANGE_MAP_CELLS)))
+    gw, gh = int(np.ceil(W / cell)), int(np.ceil(H / cell))
+    px = torch.stack([(pixels % W).float() + 0.5, torch.div(pixels, W, rounding_mode="floor").float() + 0.5], 1)
+    gy, gx = torch.meshgrid(torch.arange(gh, device=px.device), torch.arange(gw, device=px.device), indexing="ij")
+    centres = torch.stack([(gx.reshape(-1) + 0.5) * cell, (gy.reshape(-1) + 0.5) * cell], 1).float()
+    k = min(RANGE_MAP_NEIGHBOURS, len(px))
+    out = []
+    for chunk in centres.split(2048):
+        idx = torch.cdist(chunk, px).topk(k, largest=False).indices  # [n, k]
+        out.append(ranges[idx].median(dim=1).values)
+    return torch.cat(out).reshape(1, 1, gh, gw)
+
+
 MIN_DENSIFY_TRANSMISSION = 0.05  # the densification gain 1/A is capped at 20
 
 
@@ -110,6 +135,7 @@ class MediumTerm:
         self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
                     for v in views]  # per view [1, 1, H, W]
         self.surface = [surface_pixels(scene, v, device) for v in views]  # per view: (pixels [K], ranges [K])
+        self.range_maps = [point_range_map(v, *s) for v, s in zip(views, self.surface)]  # per view [1,1,h,w]
         self.transmission = view_transmission(scene, views, init["init_beta"])  # per view: mean A at its range
         self.start = int(round(cfg.start_fraction * total_iterations))
         # Short runs scale the schedule: the paper's rates are for ~20k medium iterations.
@@ -151,7 +177,8 @@ class MediumTerm:
         enabled = frozenset(self.cfg.losses)
         _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha),
                                  self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled,
-                                 anchor=self._anchor(out, D, _nchw(alpha)), surface=self.surface[view_index])
+                                 anchor=self._anchor(out, D, _nchw(alpha)), surface=self.surface[view_index],
+                                 range_map=self.range_maps[view_index])
         return weighted
 
     def _anchor(self, out: MediumOutput, D: Tensor, alpha: Tensor) -> dict[str, tuple[Tensor, Tensor]] | None:
