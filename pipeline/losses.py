@@ -158,23 +158,23 @@ def point_depth_loss(D: Tensor, pixels: Tensor, ranges: Tensor) -> Tensor:
     return (d.log() - ranges.log()).abs().mean()
 
 
-DEPTH_BAND = 2.0  # depth_band_loss lets the surface lie within this factor of its neighbourhood's point range
+DEPTH_BAND = 3.0  # depth_band_loss lets the surface lie up to this factor beyond its neighbourhood's range
 
 
 def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, band: float = DEPTH_BAND) -> Tensor:
-    """Mean α·max(0, |log D − log R| − log ``band``) over all pixels, R the view's point range map upsampled
-    to the image. D, alpha [N,1,H,W], range_map [N,1,h,w] (:func:`pipeline.medium.term.point_range_map`) → []
+    """Mean α·max(0, log D − log R − log ``band``) over all pixels, R the view's point range map upsampled to
+    the image. D, alpha [N,1,H,W], range_map [N,1,h,w] (:func:`pipeline.medium.term.point_range_map`) → []
 
     Not in the paper. ``point_depth_loss`` holds the surface at the sparse points' own pixels; where SfM found
     few points (bright, low-texture sand) Gaussians were still drawn far behind the seabed (real RUIE frames:
     ~150 scene units against ~10), where they show only the veil, and the restored view was black there. A
-    surface is continuous with its neighbourhood, so every covered pixel is asked to lie within a factor of
-    ``band`` of the range its nearest points measured; relief inside the band costs nothing. α is detached:
-    the way out must not be to uncover the pixel, which is the shortcut this term closes."""
+    surface is continuous with its neighbourhood, so no covered pixel may lie more than ``band`` times beyond
+    the range its nearest points predict; nearer costs nothing here (floaters are the floater term's). α is
+    detached: the way out must not be to uncover the pixel, which is the shortcut this term closes."""
     if range_map.numel() == 0:
         return D.new_zeros(())
     ref = F.interpolate(range_map.log(), size=D.shape[-2:], mode="bilinear", align_corners=False)
-    excess = ((D.clamp(min=1e-6).log() - ref).abs() - float(np.log(band))).clamp(min=0)
+    excess = (D.clamp(min=1e-6).log() - ref - float(np.log(band))).clamp(min=0)
     return (alpha.detach() * excess).mean()
 
 
@@ -195,7 +195,7 @@ class LossWeights:
     w_floater: float = 0.005  # not in the paper: keeps the water column free of floaters
     w_surface: float = 0.05  # not in the paper: the sparse points' pixels stay covered (surface_loss)
     w_point_depth: float = 0.05  # not in the paper: and render at the points' distance (point_depth_loss)
-    w_depth_band: float = 0.05  # not in the paper: and every covered pixel near its points' range (depth_band_loss)
+    w_depth_band: float = 0.05  # not in the paper: and no covered pixel far behind its points (depth_band_loss)
     mu: float = 0.1  # complementarity weight inside L_ab
     anchor: float = 4.0  # weight of the measured-water anchors inside L_attenuation and L_scattering (1 → 4:
     #                      restored J 20.4 → 21.2 dB on the SfM demo scene, β_D within 1–12 % of the truth)

@@ -65,28 +65,43 @@ def surface_pixels(scene: Scene, view: View, device: torch.device) -> tuple[Tens
 
 
 RANGE_MAP_CELLS = 96  # the reference range map has about this many cells along the image's long side
-RANGE_MAP_NEIGHBOURS = 8  # each cell takes the median range of this many nearest sparse-point pixels
+RANGE_MAP_NEIGHBOURS = 32  # each cell fits the inverse range of this many nearest sparse-point pixels
+RANGE_MAP_RIDGE = 1e-4  # ridge on the fit's slope (per neighbour, coordinates in image long sides)
 
 
 def point_range_map(view: View, pixels: Tensor, ranges: Tensor) -> Tensor:
-    """A coarse map of how far the surface is from the camera, everywhere in the view, from its sparse points:
-    each cell of a ~96-cell grid (long side) holds the median range of the 8 point pixels nearest its centre.
+    """A coarse map of how far the surface is from the camera, everywhere in the view, from its sparse points.
+
+    Each cell of a ~96-cell grid (long side) fits the inverse range 1/r of the 32 point pixels nearest its centre
+    as a linear function of the image position (exact for a plane: a plane's 1/z is linear in the pixel) and
+    takes the fit at its centre. Between points that interpolates; beyond them (the far seabed of an oblique
+    view, where SfM found points only in the near part) it follows the slope instead of repeating the nearest
+    points' range. A fit that runs out to or past the horizon (1/r at most a tenth of its neighbours'
+    smallest) is held at ten times their largest range, and no fit comes nearer than their nearest.
     (pixels, ranges) as :func:`surface_pixels`. Returns [1, 1, h, w] (h, w: the grid), or an empty tensor when
-    the view saw no point. Its cost is bounded by the grid, not by the image size."""
+    the view saw no point; its cost is bounded by the grid."""
     W, H = view.camera.width, view.camera.height
     if pixels.numel() == 0:
         return ranges.new_zeros((0,))
     cell = max(1, int(np.ceil(max(W, H) / RANGE_MAP_CELLS)))
     gw, gh = int(np.ceil(W / cell)), int(np.ceil(H / cell))
-    px = torch.stack([(pixels % W).float() + 0.5, torch.div(pixels, W, rounding_mode="floor").float() + 0.5], 1)
+    side = float(max(W, H))
+    px = torch.stack([(pixels % W).double() + 0.5, torch.div(pixels, W, rounding_mode="floor").double() + 0.5], 1)
     gy, gx = torch.meshgrid(torch.arange(gh, device=px.device), torch.arange(gw, device=px.device), indexing="ij")
-    centres = torch.stack([(gx.reshape(-1) + 0.5) * cell, (gy.reshape(-1) + 0.5) * cell], 1).float()
+    centres = torch.stack([(gx.reshape(-1) + 0.5) * cell, (gy.reshape(-1) + 0.5) * cell], 1).double()
+    inv = 1.0 / ranges.double()
     k = min(RANGE_MAP_NEIGHBOURS, len(px))
     out = []
     for chunk in centres.split(2048):
         idx = torch.cdist(chunk, px).topk(k, largest=False).indices  # [n, k]
-        out.append(ranges[idx].median(dim=1).values)
-    return torch.cat(out).reshape(1, 1, gh, gw)
+        d = (px[idx] - chunk[:, None]) / side  # [n, k, 2]
+        X = torch.cat([torch.ones_like(d[..., :1]), d], -1)  # [n, k, 3]
+        y = inv[idx]  # [n, k]
+        ridge = torch.diag(torch.tensor([0.0, 1.0, 1.0], dtype=X.dtype)) * RANGE_MAP_RIDGE * k
+        coef = torch.linalg.solve(X.transpose(1, 2) @ X + ridge, (X.transpose(1, 2) @ y[..., None]))[:, 0, 0]
+        lo, hi = 0.1 * y.min(dim=1).values, y.max(dim=1).values  # never nearer than the nearest neighbour
+        out.append(1.0 / torch.minimum(torch.where(coef > lo, coef, lo), hi))
+    return torch.cat(out).reshape(1, 1, gh, gw).to(ranges.dtype)
 
 
 MIN_DENSIFY_TRANSMISSION = 0.05  # the densification gain 1/A is capped at 20
