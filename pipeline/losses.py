@@ -37,9 +37,9 @@ Where we differ from the paper and its authors' code, and why:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -174,7 +174,7 @@ def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, band: float = D
     if range_map.numel() == 0:
         return D.new_zeros(())
     ref = F.interpolate(range_map.log(), size=D.shape[-2:], mode="bilinear", align_corners=False)
-    excess = (D.clamp(min=1e-6).log() - ref - float(np.log(band))).clamp(min=0)
+    excess = (D.clamp(min=1e-6).log() - ref - math.log(band)).clamp(min=0)
     return (alpha.detach() * excess).mean()
 
 
@@ -234,17 +234,17 @@ def loss_terms(
         raw["ms"] = multiscale_loss(render, target, w.lam_ms)
     if "floater" in enabled:
         raw["floater"] = floater_loss(alpha)
-    if "surface" in enabled and surface is not None:
-        raw["surface"] = surface_loss(alpha, surface[0])
-        raw["point_depth"] = point_depth_loss(D, *surface)
-    if "surface" in enabled and range_map is not None:
-        raw["depth_band"] = depth_band_loss(D, alpha, range_map)
+    if "surface" in enabled:  # the sparse points' evidence; point_depth and depth_band are switched with it
+        if surface is not None:
+            raw["surface"] = surface_loss(alpha, surface[0])
+            raw["point_depth"] = point_depth_loss(D, *surface)
+        if range_map is not None:
+            raw["depth_band"] = depth_band_loss(D, alpha, range_map)
     weights = {"basic": w.w_basic, "ab": w.w_ab, "wat": w.w_wat, "edge": w.w_edge, "ms": w.w_ms,
                "floater": w.w_floater, "surface": w.w_surface, "point_depth": w.w_point_depth,
                "depth_band": w.w_depth_band}
-    with_surface = {"point_depth", "depth_band"}  # switched with the surface term
-    weighted = {k: weights[k] * raw[k] for k in weights
-                if k == "basic" or ((k in enabled or (k in with_surface and "surface" in enabled)) and k in raw)}
+    evidence = {"point_depth", "depth_band"}  # present in raw only when "surface" is enabled
+    weighted = {k: weights[k] * raw[k] for k in weights if k in raw and (k == "basic" or k in enabled or k in evidence)}
     return raw, weighted
 
 

@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .scene.types import Scene, Sightings, View
+from .scene.types import Scene, Sightings, View, ray_length_factor
 
 COVER_ALPHA = 0.5  # a pixel is covered when the Gaussians' alpha is at least this
 POINT_DEPTH_TOL = 0.25  # a point's pixel renders its surface when the rendered distance is within 25 % of it
@@ -49,20 +49,30 @@ class ViewQuality:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
 
-def view_points(scene: Scene, view: View, with_ids: bool = False):
-    """Pixel positions [K, 2] (pixel-centre convention, at ``view.camera``'s resolution) of the sparse points
-    ``view`` saw: its track observations when the model has them, else the points projecting inside it.
-    ``with_ids``: (positions, point indices [K]) instead."""
+def _points_seen(scene: Scene, view: View) -> tuple[np.ndarray, np.ndarray]:
+    """(pixel positions [K, 2], point indices [K]) of the sparse points ``view`` saw (see :func:`view_points`)."""
     s: Sightings | None = (scene.sightings or {}).get(view.name)
     if s is not None and len(s.xy):
-        xy, ids = np.asarray(s.xy, dtype=np.float64) * (view.camera.width / s.width), np.asarray(s.point)
-    elif not len(scene.points):
-        xy, ids = np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
-    else:
-        u, v, _ = view.project(scene.points)
-        ok = np.isfinite(u) & (u >= 0) & (u < view.camera.width) & (v >= 0) & (v < view.camera.height)
-        xy, ids = np.stack([u[ok], v[ok]], axis=1), np.nonzero(ok)[0]
-    return (xy, ids) if with_ids else xy
+        return np.asarray(s.xy, dtype=np.float64) * (view.camera.width / s.width), np.asarray(s.point)
+    if not len(scene.points):
+        return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+    u, v, _ = view.project(scene.points)
+    ok = np.isfinite(u) & (u >= 0) & (u < view.camera.width) & (v >= 0) & (v < view.camera.height)
+    return np.stack([u[ok], v[ok]], axis=1), np.nonzero(ok)[0]
+
+
+def view_points(scene: Scene, view: View) -> np.ndarray:
+    """Pixel positions [K, 2] (pixel-centre convention, at ``view.camera``'s resolution) of the sparse points
+    ``view`` saw: its track observations when the model has them, else the points projecting inside it."""
+    return _points_seen(scene, view)[0]
+
+
+def view_point_ranges(scene: Scene, view: View) -> tuple[np.ndarray, np.ndarray]:
+    """The sparse points ``view`` saw: pixel positions [K, 2] as :func:`view_points`, and each point's distance
+    from the camera centre [K] (scene units)."""
+    xy, ids = _points_seen(scene, view)
+    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
+    return xy, (np.linalg.norm(pts[ids] - view.center, axis=1) if len(ids) else np.zeros(0))
 
 
 def view_quality(name: str, alpha: np.ndarray, points_xy: np.ndarray, water: np.ndarray | None = None,
@@ -139,16 +149,12 @@ def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, 
 
     model = model_from_state(state)
     per_view = []
-    from .scene.types import ray_length_factor
-
-    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
     for v in views:
         o = render_outputs(model.gaussians, v, model.medium, model.sh_degree, backend, model.background)
         water = None if o.A is None else np.clip(o.I - o.J * o.A, 0, None)
-        xy, ids = view_points(scene, v, with_ids=True)
+        xy, ranges = view_point_ranges(scene, v)
         per_view.append(view_quality(v.name, o.alpha, xy, water, o.I if o.A is not None else None,
-                                     o.depth * ray_length_factor(v.camera),
-                                     np.linalg.norm(pts[ids] - v.center, axis=1) if len(ids) else None))
+                                     o.depth * ray_length_factor(v.camera), ranges if len(ranges) else None))
     n = int(model.gaussians["means"].shape[0])
     collapsed, warnings = collapse_warnings(per_view, n, budget)
     opac = activate(model.gaussians).opacities.detach().cpu().numpy() if n else np.zeros(0)

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from ..config import MediumConfig
 from ..losses import LossWeights, basic_loss, loss_terms
-from ..quality import view_points
+from ..quality import view_point_ranges
 from ..scene.types import Scene, View, ray_length_factor
 from .estimate import measure_water
 from .model import Medium, MediumOutput
@@ -49,12 +49,10 @@ def scene_depth_scale(scene: Scene, views: Sequence[View]) -> float:
 def surface_pixels(scene: Scene, view: View, device: torch.device) -> tuple[Tensor, Tensor]:
     """The distinct pixels where ``view`` saw sparse points, at its camera's size: flat indices (y·W + x) [K] and
     the distance from the camera to the nearest point on each [K] (scene units)."""
-    xy, ids = view_points(scene, view, with_ids=True)
+    xy, r = view_point_ranges(scene, view)
     w, h = view.camera.width, view.camera.height
     x = np.clip(np.floor(xy[:, 0]).astype(np.int64), 0, w - 1)
     y = np.clip(np.floor(xy[:, 1]).astype(np.int64), 0, h - 1)
-    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
-    r = np.linalg.norm(pts[ids] - view.center, axis=1) if len(ids) else np.zeros(0)
     flat = y * w + x
     order = np.lexsort((r, flat))  # per pixel, the nearest point first
     flat, r = flat[order], r[order]
@@ -91,13 +89,13 @@ def point_range_map(view: View, pixels: Tensor, ranges: Tensor) -> Tensor:
     centres = torch.stack([(gx.reshape(-1) + 0.5) * cell, (gy.reshape(-1) + 0.5) * cell], 1).double()
     inv = 1.0 / ranges.double()
     k = min(RANGE_MAP_NEIGHBOURS, len(px))
+    ridge = torch.diag(torch.tensor([0.0, 1.0, 1.0], dtype=px.dtype, device=px.device)) * RANGE_MAP_RIDGE * k
     out = []
     for chunk in centres.split(2048):
         idx = torch.cdist(chunk, px).topk(k, largest=False).indices  # [n, k]
         d = (px[idx] - chunk[:, None]) / side  # [n, k, 2]
         X = torch.cat([torch.ones_like(d[..., :1]), d], -1)  # [n, k, 3]
         y = inv[idx]  # [n, k]
-        ridge = torch.diag(torch.tensor([0.0, 1.0, 1.0], dtype=X.dtype)) * RANGE_MAP_RIDGE * k
         coef = torch.linalg.solve(X.transpose(1, 2) @ X + ridge, (X.transpose(1, 2) @ y[..., None]))[:, 0, 0]
         lo, hi = 0.1 * y.min(dim=1).values, y.max(dim=1).values  # never nearer than the nearest neighbour
         out.append(1.0 / torch.minimum(torch.where(coef > lo, coef, lo), hi))
