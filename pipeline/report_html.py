@@ -229,13 +229,13 @@ def _quality(q: dict | None) -> str:
                if q.get("water_share_mean") is not None else ""))
     warn = "".join(f"<li>{escape(w)}</li>" for w in q.get("warnings", []))
     cls = "box" if warn else "ok"
-    rows = [[p["name"], p["coverage"], p["point_coverage"], p.get("point_depth"), p["water_share"]]
-            for p in q.get("per_view", [])]
+    rows = [[p["name"], p["coverage"], p["point_coverage"], p.get("point_depth"), p.get("uncovered_detail"),
+             p["water_share"]] for p in q.get("per_view", [])]
     return (f"<div class={cls}><b>Model quality</b>: {escape(line)}."
             + (f"<ul class=warn>{warn}</ul>" if warn else " No warnings.") + "</div>"
             + "<details><summary>coverage per training view</summary>"
-            + table(["view", "pixels covered", "sparse points covered", "points at their distance", "water share"],
-                    rows, 3) + "</details>")
+            + table(["view", "pixels covered", "sparse points covered", "points at their distance",
+                     "uncovered with detail", "water share"], rows, 3) + "</details>")
 
 
 def render_html(r: dict, pics: Pictures) -> str:

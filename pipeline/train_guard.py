@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from .budget import pixel_budget
 from .checkpoint import load_checkpoint
 from .config import TrainConfig, from_dict, to_dict
@@ -24,6 +26,7 @@ from .losses import LossWeights
 from .quality import assess_state
 from .scene.types import Scene, View
 from .train import CHECKPOINT_NAME, TrainResult, train
+from .train_setup import prepare_images
 
 log = logging.getLogger(__name__)
 
@@ -70,10 +73,11 @@ def gaussian_budget(views: Sequence[View], cap: int) -> int:
     return min(cap, per_pixel) if cap > 0 else per_pixel
 
 
-def _assess(ckpt: Path, scene: Scene, cfg: TrainConfig) -> dict:
+def _assess(ckpt: Path, scene: Scene, images: Sequence, cfg: TrainConfig) -> dict:
     state = load_checkpoint(ckpt)
-    views = training_views(scene.views, cfg.downscale)
-    return assess_state(state, scene, views, gaussian_budget(views, cfg.densify.max_gaussians), cfg.backend)
+    views, targets = prepare_images(scene.views, images, cfg.downscale, torch.device("cpu"))
+    return assess_state(state, scene, views, gaussian_budget(views, cfg.densify.max_gaussians), cfg.backend,
+                        [t.numpy() for t in targets])
 
 
 def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_dir: str | Path, *,
@@ -88,7 +92,7 @@ def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_d
     recovery = json.loads(rec_path.read_text()) if rec_path.is_file() else None
     if recovery is None:
         res = train(scene, images, cfg, checkpoint_dir=out, **train_kwargs)
-        quality = _assess(out / CHECKPOINT_NAME, scene, cfg)
+        quality = _assess(out / CHECKPOINT_NAME, scene, images, cfg)
         if not quality["collapsed"]:
             return res, quality, None
         if cfg.iterations < min_iterations:
@@ -109,7 +113,7 @@ def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_d
         os.replace(tmp, rec_path)
     safe, _ = safer_config(cfg)
     res = train(scene, images, safe, checkpoint_dir=out, **train_kwargs)
-    quality = _assess(out / CHECKPOINT_NAME, scene, safe)
+    quality = _assess(out / CHECKPOINT_NAME, scene, images, safe)
     if quality["collapsed"]:
         raise ModelCollapsedError(
             f"the {cfg.mode} model lost the scene ({'; '.join(quality['warnings'])}), also after a retry on a "

@@ -87,3 +87,46 @@ def test_far_share_catches_surface_drawn_far_behind_between_the_points():
     ok = view_quality("v", alpha, pts, rendered_range=np.full((10, 10), 10.0),
                       point_range=np.array([9.5, 10.0, 10.5]))
     assert ok.far_share == 0.0
+
+
+def _textured(rng: np.random.Generator, h: int, w: int, contrast: float) -> np.ndarray:
+    """A grey veil with a blocky texture of ``contrast`` (the seabed) and faint pixel noise (the camera)."""
+    blocks = rng.uniform(-contrast, contrast, (h // 4, w // 4)).repeat(4, 0).repeat(4, 1)
+    return np.repeat((0.4 + blocks + rng.normal(0, 0.002, (h, w)))[..., None], 3, -1)
+
+
+def test_uncovered_detail_flags_seabed_given_up_as_veil_not_open_water():
+    """Photo-textured medium water, the steep oblique views: their far half (8-16 m) left uncovered and rendered as
+    the uniform veil although the photo still shows its texture. Open water (smooth) uncovered is no warning."""
+    rng = np.random.default_rng(0)
+    h, w = 40, 60
+    photo = _textured(rng, h, w, 0.03)
+    alpha = np.ones((h, w))
+    alpha[:16] = 0.0  # the top 40 % uncovered
+    predicted = photo.copy()
+    predicted[:16] = 0.4  # ... and predicted as the flat veil
+    predicted[16:] += rng.normal(0, 0.004, (h - 16, w, 1))  # the covered part fits up to a small error
+    q = view_quality("far", alpha, np.zeros((0, 2)), predicted=predicted, photo=photo)
+    assert q.uncovered_detail is not None and q.uncovered_detail > 0.3
+    collapsed, warnings = collapse_warnings([q], 5000, 10_000)
+    assert not collapsed and "far" in warnings[0] and "open water" in warnings[0]
+
+    water = photo.copy()
+    water[:16] = 0.4 + rng.normal(0, 0.002, (16, w, 1))  # the top is open water: smooth, only noise
+    q = view_quality("open", alpha, np.zeros((0, 2)), predicted=predicted, photo=water)
+    assert q.uncovered_detail is not None and q.uncovered_detail < 0.01
+    assert collapse_warnings([q], 5000, 10_000) == (False, [])
+    covered = view_quality("all", np.ones((h, w)), np.zeros((0, 2)), predicted=predicted, photo=photo)
+    assert covered.uncovered_detail == 0.0
+    assert view_quality("none", np.zeros((h, w)), np.zeros((0, 2)), predicted=predicted,
+                        photo=photo).uncovered_detail is None  # nothing covered: no reference spread
+
+
+def test_box_mean_matches_a_direct_window_mean():
+    from pipeline.quality import _box_mean
+
+    x = np.random.default_rng(1).normal(size=(9, 13))
+    got = _box_mean(x, 3)
+    pad = np.pad(x, 1, mode="edge")
+    ref = np.array([[pad[i:i + 3, j:j + 3].mean() for j in range(13)] for i in range(9)])
+    assert np.allclose(got, ref)
