@@ -46,7 +46,7 @@ class SfmConfig:
     max_num_features: int = 8192
     camera_model: str = "SIMPLE_RADIAL"  # model refined by bundle adjustment before undistortion
     single_camera: bool = True  # one shared camera for the whole set (one ROV camera)
-    num_threads: int = 2  # fixed rather than -1 so runs are reproducible and polite on 2 cores
+    num_threads: int = 1  # one thread: SfM repeats bit for bit (2 threads moved the model run to run)
     seed: int = 0
     min_registered: int = 3  # fewer registered images than this is an error
 

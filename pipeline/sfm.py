@@ -14,8 +14,10 @@ pycolmap "warns and returns an empty result" on hopeless input; here every such 
 process for ALIKED / LightGlue (no ONNX), so the extractor type is never configurable.
 
 Reproducibility: seeded, and image ids follow the sorted names, so features and matches are identical run to
-run. With ``num_threads=1`` the whole output is bit-identical; with 2 threads the mapper's threading can
-still move the result slightly (RUIE: 1.115 vs 1.121 px, same 19 images).
+run. With ``num_threads=1`` (the default) the whole output is bit-identical; with 2 threads the model
+moved run to run (RUIE A188: 1.110 / 1.115 / 1.121 px, same 19 images; the mapper alone on one thread was
+not enough), and training on two such models gave a far-drawn share of 18 % against 1.4 %. One thread costs
+about a quarter more SfM time (A188: 8.7-9.2 s against 7.1-7.4 s; docs/DECISIONS.md).
 """
 
 from __future__ import annotations

@@ -30,6 +30,8 @@ logger = logging.getLogger(__name__)
 
 TILE_SIZE = CPU_TILE
 _TILE_CHUNK = 4  # tiles per dynamically scheduled work item of the compositing kernels
+BWD_SLICES = 4  # the backward's accumulator slices (_cpu_raster_kernels, step 3): fixed, not the thread count,
+#                 so a run repeats bit for bit on any machine (4: +3-8 % fwd+bwd against one per thread, bench)
 
 
 _announced = False
@@ -173,7 +175,6 @@ class _Raster(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_out, v_alpha):
         _, rk = _kernels()
-        import numba
 
         means2d, out_t = ctx.saved_tensors
         group_rows, bgs, tile_offsets, tile_end, masks, items, pair_item = ctx.state
@@ -189,9 +190,9 @@ class _Raster(torch.autograd.Function):
         v_feat = torch.zeros(C, N, groups * NF, dtype=f32)
         v_feat_g = np.empty((C, N, NF), np.float32)
         for g in range(groups):
-            acc = np.zeros((numba.get_num_threads(), items.shape[0], rk.GROW + NF), np.float32)
+            acc = np.zeros((BWD_SLICES, items.shape[0], rk.GROW + NF), np.float32)
             v_alpha_g = v_alpha if g == 0 else torch.zeros_like(v_alpha)
-            with _dynamic_schedule(_TILE_CHUNK):
+            with _dynamic_schedule():
                 rk.raster_bwd(group_rows[g], tile_offsets, tile_end, masks, pair_item, width, height,
                               _np(bgs[:, g]), out_t.numpy(), _np(v_out[..., g, :]), _np(v_alpha_g), acc)  # fmt: skip
             v_feat_g[:] = 0.0

@@ -11,9 +11,12 @@ Data flow (per call; C cameras share one flat list of C * n_tiles tiles):
    final transmittance, and for every pair a 64-bit mask of the pixels it was composited at (so the backward
    never re-decides anything), plus the end of each tile's used pair range.
 3. ``raster_bwd``: back to front per tile (3DGS's T / (1 - alpha) recursion); each pair's gradient
-   ``(d mx, d my, d a, d b, d c, d opacity, |d mx|, |d my|, d f0..f3)`` is added to its item's row in the
-   working thread's own accumulator slice [n_threads, M, 8 + 4] (no races, no atomics, no index_add).
-4. ``reduce_items``: per item, sum the thread slices.
+   ``(d mx, d my, d a, d b, d c, d opacity, |d mx|, |d my|, d f0..f3)`` is added to its item's row in one of
+   a fixed number of accumulator slices [S, M, 8 + 4]: slice s owns tiles s, s + S, s + 2S, ... and one
+   thread works a slice in tile order (no races, no atomics, no index_add). Which tiles are summed together,
+   and in which order, never depends on the thread schedule, so training repeats bit for bit (with one slice
+   per thread, the dynamic schedule made every run's sums, and after a few hundred steps its model, differ).
+4. ``reduce_items``: per item, sum the slices in order.
 
 Bit-reproducibility with the torch reference: ``raster_fwd`` is compiled without fastmath and evaluates sigma
 with exactly ``_torch_ref.pair_sigma``'s operation order, so its alpha >= 1/255 decisions match the reference's.
@@ -22,7 +25,7 @@ with exactly ``_torch_ref.pair_sigma``'s operation order, so its alpha >= 1/255 
 from __future__ import annotations
 
 import numpy as np
-from numba import get_thread_id, njit, prange
+from numba import njit, prange
 
 from pipeline.splat._constants import ALPHA_MAX, CPU_TILE, T_MIN
 from pipeline.splat._numba_math import FASTMATH, fexp
@@ -346,8 +349,9 @@ def raster_bwd(rows, tile_offsets, tile_end, masks, pair_item, width, height, ba
     """Backward of ``raster_fwd`` (3DGS's back-to-front recursion), one fused SIMD pass per pair.
 
     v_out [C, H, W, 4] = dL/d(rendered features), v_alpha [C, H, W] = dL/d(rendered alpha) ->
-    acc [n_threads, M, 8 + 4] (pre-zeroed): each thread adds the gradient of every pair it processes to the
-    pair's item row of its own slice (no races, no atomics; ``reduce_items`` sums the slices).
+    acc [S, M, 8 + 4] (pre-zeroed): slice s gets the gradient of every pair of tiles s, s + S, ..., added to
+    the pair's item row in tile order by the one thread that runs it (no races, no atomics, the same sums
+    whatever the schedule; ``reduce_items`` sums the slices).
 
     For pair i at a pixel, with T_i its transmittance in front and B the sum of w_j f_j behind it:
       dL/dalpha_i = sum_f v_f (f_i T_i - B_f / (1 - alpha_i)) + T_final / (1 - alpha_i) (v_alpha - v . bg)
@@ -355,98 +359,100 @@ def raster_bwd(rows, tile_offsets, tile_end, masks, pair_item, width, height, ba
     """
     ntx = (width + TILE - 1) // TILE
     ntile = ntx * ((height + TILE - 1) // TILE)
-    for t in prange(tile_offsets.shape[0] - 1):
-        start, end = tile_offsets[t], tile_end[t]
-        if end == start:
-            continue
-        tid = get_thread_id()
-        px, py = np.empty(LANES, np.float32), np.empty(LANES, np.float32)
-        inside = np.empty(LANES, np.bool_)
-        c, x0, y0 = _tile_pixels(t, ntx, ntile, width, height, px, py, inside)
-        T = np.ones(LANES, np.float32)
-        t_fin = np.ones(LANES, np.float32)
-        v_base = np.zeros(LANES, np.float32)  # v_alpha - v . bg
-        vf = np.zeros((NF, LANES), np.float32)
-        buf = np.zeros((NF, LANES), np.float32)
-        for p in range(LANES):
-            if inside[p]:
-                y, x = y0 + p // TILE, x0 + p % TILE
-                T[p] = out_t[c, y, x]
-                t_fin[p] = T[p]
-                vb = v_alpha[c, y, x]
-                for f in range(NF):
-                    vf[f, p] = v_out[c, y, x, f]
-                    vb -= vf[f, p] * backgrounds[c, f]
-                v_base[p] = vb
-        for j in range(end - 1, start - 1, -1):
-            m = masks[j]
-            if m == 0:
+    n_tiles, n_slices = tile_offsets.shape[0] - 1, acc.shape[0]
+    # slice k takes tiles k, k + n_slices, ... in order: the sums do not depend on which thread ran what
+    for k in prange(n_slices):
+        for t in range(k, n_tiles, n_slices):
+            start, end = tile_offsets[t], tile_end[t]
+            if end == start:
                 continue
-            row = pair_item[j]
-            mx, my, a, b, cc = rows[j, 0], rows[j, 1], rows[j, 2], rows[j, 3], rows[j, 4]
-            op = rows[j, 5]
-            f0, f1, f2, f3 = rows[j, ROW], rows[j, ROW + 1], rows[j, ROW + 2], rows[j, ROW + 3]
-            # only the tile rows where this pair was composited (unsigned lanes: see raster_fwd)
-            r0, r1 = 0, TILE
-            while (m >> np.uint64(r0 * TILE)) & np.uint64(255) == 0:
-                r0 += 1
-            while (m >> np.uint64((r1 - 1) * TILE)) & np.uint64(255) == 0:
-                r1 -= 1
-            g_mx, g_my, g_a, g_b, g_c, g_op, ab_x, ab_y = _F0, _F0, _F0, _F0, _F0, _F0, _F0, _F0
-            g0, g1, g2, g3 = _F0, _F0, _F0, _F0
-            for p in range(np.uint64(r0 * TILE), np.uint64(r1 * TILE)):
-                on = np.float32((m >> p) & np.uint64(1))
-                dx = mx - px[p]
-                dy = my - py[p]
-                s = max(_HALF * (a * dx * dx + cc * dy * dy) + b * dx * dy, _F0)
-                vis = fexp(-s)
-                raw = op * vis
-                alpha = min(_AMAX, raw) * on
-                rcp = _F1 / (_F1 - alpha)
-                Tp = T[p] * rcp  # transmittance in front of this Gaussian
-                T[p] = Tp
-                fac = alpha * Tp
-                v0, v1, v2, v3 = vf[0, p], vf[1, p], vf[2, p], vf[3, p]
-                va = t_fin[p] * rcp * v_base[p]
-                va += (f0 * Tp - buf[0, p] * rcp) * v0 + (f1 * Tp - buf[1, p] * rcp) * v1
-                va += (f2 * Tp - buf[2, p] * rcp) * v2 + (f3 * Tp - buf[3, p] * rcp) * v3
-                buf[0, p] += f0 * fac
-                buf[1, p] += f1 * fac
-                buf[2, p] += f2 * fac
-                buf[3, p] += f3 * fac
-                g0 += fac * v0
-                g1 += fac * v1
-                g2 += fac * v2
-                g3 += fac * v3
-                ga = va * on if raw <= _AMAX else _F0  # dL/dalpha, zero where the 0.99 clamp is active
-                g_op += vis * ga
-                vs = -op * vis * ga  # dL/dsigma
-                g_a += _HALF * vs * dx * dx
-                g_b += vs * dx * dy
-                g_c += _HALF * vs * dy * dy
-                gx = vs * (a * dx + b * dy)
-                gy = vs * (b * dx + cc * dy)
-                g_mx += gx
-                g_my += gy
-                ab_x += abs(gx)
-                ab_y += abs(gy)
-            acc[tid, row, 0] += g_mx
-            acc[tid, row, 1] += g_my
-            acc[tid, row, 2] += g_a
-            acc[tid, row, 3] += g_b
-            acc[tid, row, 4] += g_c
-            acc[tid, row, 5] += g_op
-            acc[tid, row, 6] += ab_x
-            acc[tid, row, 7] += ab_y
-            acc[tid, row, GROW] += g0
-            acc[tid, row, GROW + 1] += g1
-            acc[tid, row, GROW + 2] += g2
-            acc[tid, row, GROW + 3] += g3
+            px, py = np.empty(LANES, np.float32), np.empty(LANES, np.float32)
+            inside = np.empty(LANES, np.bool_)
+            c, x0, y0 = _tile_pixels(t, ntx, ntile, width, height, px, py, inside)
+            T = np.ones(LANES, np.float32)
+            t_fin = np.ones(LANES, np.float32)
+            v_base = np.zeros(LANES, np.float32)  # v_alpha - v . bg
+            vf = np.zeros((NF, LANES), np.float32)
+            buf = np.zeros((NF, LANES), np.float32)
+            for p in range(LANES):
+                if inside[p]:
+                    y, x = y0 + p // TILE, x0 + p % TILE
+                    T[p] = out_t[c, y, x]
+                    t_fin[p] = T[p]
+                    vb = v_alpha[c, y, x]
+                    for f in range(NF):
+                        vf[f, p] = v_out[c, y, x, f]
+                        vb -= vf[f, p] * backgrounds[c, f]
+                    v_base[p] = vb
+            for j in range(end - 1, start - 1, -1):
+                m = masks[j]
+                if m == 0:
+                    continue
+                row = pair_item[j]
+                mx, my, a, b, cc = rows[j, 0], rows[j, 1], rows[j, 2], rows[j, 3], rows[j, 4]
+                op = rows[j, 5]
+                f0, f1, f2, f3 = rows[j, ROW], rows[j, ROW + 1], rows[j, ROW + 2], rows[j, ROW + 3]
+                # only the tile rows where this pair was composited (unsigned lanes: see raster_fwd)
+                r0, r1 = 0, TILE
+                while (m >> np.uint64(r0 * TILE)) & np.uint64(255) == 0:
+                    r0 += 1
+                while (m >> np.uint64((r1 - 1) * TILE)) & np.uint64(255) == 0:
+                    r1 -= 1
+                g_mx, g_my, g_a, g_b, g_c, g_op, ab_x, ab_y = _F0, _F0, _F0, _F0, _F0, _F0, _F0, _F0
+                g0, g1, g2, g3 = _F0, _F0, _F0, _F0
+                for p in range(np.uint64(r0 * TILE), np.uint64(r1 * TILE)):
+                    on = np.float32((m >> p) & np.uint64(1))
+                    dx = mx - px[p]
+                    dy = my - py[p]
+                    s = max(_HALF * (a * dx * dx + cc * dy * dy) + b * dx * dy, _F0)
+                    vis = fexp(-s)
+                    raw = op * vis
+                    alpha = min(_AMAX, raw) * on
+                    rcp = _F1 / (_F1 - alpha)
+                    Tp = T[p] * rcp  # transmittance in front of this Gaussian
+                    T[p] = Tp
+                    fac = alpha * Tp
+                    v0, v1, v2, v3 = vf[0, p], vf[1, p], vf[2, p], vf[3, p]
+                    va = t_fin[p] * rcp * v_base[p]
+                    va += (f0 * Tp - buf[0, p] * rcp) * v0 + (f1 * Tp - buf[1, p] * rcp) * v1
+                    va += (f2 * Tp - buf[2, p] * rcp) * v2 + (f3 * Tp - buf[3, p] * rcp) * v3
+                    buf[0, p] += f0 * fac
+                    buf[1, p] += f1 * fac
+                    buf[2, p] += f2 * fac
+                    buf[3, p] += f3 * fac
+                    g0 += fac * v0
+                    g1 += fac * v1
+                    g2 += fac * v2
+                    g3 += fac * v3
+                    ga = va * on if raw <= _AMAX else _F0  # dL/dalpha, zero where the 0.99 clamp is active
+                    g_op += vis * ga
+                    vs = -op * vis * ga  # dL/dsigma
+                    g_a += _HALF * vs * dx * dx
+                    g_b += vs * dx * dy
+                    g_c += _HALF * vs * dy * dy
+                    gx = vs * (a * dx + b * dy)
+                    gy = vs * (b * dx + cc * dy)
+                    g_mx += gx
+                    g_my += gy
+                    ab_x += abs(gx)
+                    ab_y += abs(gy)
+                acc[k, row, 0] += g_mx
+                acc[k, row, 1] += g_my
+                acc[k, row, 2] += g_a
+                acc[k, row, 3] += g_b
+                acc[k, row, 4] += g_c
+                acc[k, row, 5] += g_op
+                acc[k, row, 6] += ab_x
+                acc[k, row, 7] += ab_y
+                acc[k, row, GROW] += g0
+                acc[k, row, GROW + 1] += g1
+                acc[k, row, GROW + 2] += g2
+                acc[k, row, GROW + 3] += g3
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def reduce_items(acc, items, v_means2d, v_conics, v_opac, v_feat, absgrad):
-    """Add the per-thread item rows: acc [n_threads, M, 8 + 4] -> v_means2d [C, N, 2], v_conics [C, N, 3],
+    """Add the slices' item rows: acc [S, M, 8 + 4] -> v_means2d [C, N, 2], v_conics [C, N, 3],
     v_opac [C, N], v_feat [C, N, 4], absgrad [C, N, 2] (accumulated into, so channel groups can add up)."""
     N = v_opac.shape[1]
     M = items.shape[0]
