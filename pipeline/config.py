@@ -81,6 +81,10 @@ class DensifyConfig:
 
     refine_start: int = 500  # grow/prune only at iterations strictly after this one
     refine_stop: int = 15_000  # no growing, pruning or opacity reset from this iteration on
+    # Medium modes refine until this many times refine_stop (fast: 2,250 of 3,000 instead of 1,500): growth goes
+    # on while the medium settles (it starts at a third of the run), so a seabed the water dims can still be
+    # split fine enough to carry its texture (docs/DECISIONS.md, fix 6).
+    medium_refine_factor: float = 1.5
     refine_every: int = 100  # grow/prune every this many iterations
     reset_every: int = 3000  # clamp opacities to 2 * prune_opacity every this many iterations
     pause_after_reset: int = 0  # skip growing/pruning for this many iterations after a reset

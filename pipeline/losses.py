@@ -178,6 +178,22 @@ def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, band: float = D
     return (alpha.detach() * excess).mean()
 
 
+def cover_loss(alpha: Tensor, weight: Tensor) -> Tensor:
+    """Mean w·(1 − α) over all pixels, w the visibility of the surface the view's sparse points predict there
+    (:func:`pipeline.medium.term.cover_weight`) upsampled to the image. alpha [N,1,H,W], weight [N,1,h,w] → []
+
+    Not in the paper. ``surface_loss`` keeps the points' own pixels covered; between and beyond them (the far
+    seabed of an oblique view, where SfM finds points only in the near part) nothing did, and a seabed the
+    water dims to 5-20 % of its light was given up as open water: its pixels then show the veil, which is
+    nearly the photo, so the photometric loss barely resisted (docs/DECISIONS.md). Where the points' plane
+    says a surface lies within sight, the Gaussians must cover it; where the plane runs to the horizon, or
+    lies where the water hides it, the weight is 0 and open water stays open."""
+    if weight.numel() == 0:
+        return alpha.new_zeros(())
+    w = F.interpolate(weight, size=alpha.shape[-2:], mode="bilinear", align_corners=False)
+    return (w * (1.0 - alpha)).mean()
+
+
 def floater_loss(alpha: Tensor) -> Tensor:
     """Mean α(1 − α) of rendered alpha: semi-transparent haze made of Gaussians costs. [N,1,H,W] → []"""
     return (alpha * (1 - alpha)).mean()
@@ -196,6 +212,7 @@ class LossWeights:
     w_surface: float = 0.05  # not in the paper: the sparse points' pixels stay covered (surface_loss)
     w_point_depth: float = 0.05  # not in the paper: and render at the points' distance (point_depth_loss)
     w_depth_band: float = 0.05  # not in the paper: and no covered pixel far behind its points (depth_band_loss)
+    w_cover: float = 0.05  # not in the paper: and the surface their planes predict in sight covered (cover_loss)
     mu: float = 0.1  # complementarity weight inside L_ab
     anchor: float = 4.0  # weight of the measured-water anchors inside L_attenuation and L_scattering (1 → 4:
     #                      restored J 20.4 → 21.2 dB on the SfM demo scene, β_D within 1–12 % of the truth)
@@ -210,7 +227,7 @@ def loss_terms(
     depth_scale: float, w: LossWeights, alpha_w: float = 1.0, beta_w: float = 1.0,
     enabled: frozenset[str] = frozenset({"ab", "wat", "edge", "ms", "floater"}),
     anchor: dict[str, tuple[Tensor, Tensor]] | None = None, surface: tuple[Tensor, Tensor] | None = None,
-    range_map: Tensor | None = None,
+    range_map: Tensor | None = None, cover: Tensor | None = None,
 ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
     """Eq. 13's terms: (raw terms for logging, weighted terms whose sum is L_total).
 
@@ -240,10 +257,12 @@ def loss_terms(
             raw["point_depth"] = point_depth_loss(D, *surface)
         if range_map is not None:
             raw["depth_band"] = depth_band_loss(D, alpha, range_map)
+        if cover is not None:
+            raw["cover"] = cover_loss(alpha, cover)
     weights = {"basic": w.w_basic, "ab": w.w_ab, "wat": w.w_wat, "edge": w.w_edge, "ms": w.w_ms,
                "floater": w.w_floater, "surface": w.w_surface, "point_depth": w.w_point_depth,
-               "depth_band": w.w_depth_band}
-    evidence = {"point_depth", "depth_band"}  # present in raw only when "surface" is enabled
+               "depth_band": w.w_depth_band, "cover": w.w_cover}
+    evidence = {"point_depth", "depth_band", "cover"}  # present in raw only when "surface" is enabled
     weighted = {k: weights[k] * raw[k] for k in weights if k in raw and (k == "basic" or k in enabled or k in evidence)}
     return raw, weighted
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -113,7 +113,10 @@ class Trainer:
         torch.manual_seed(cfg.seed)  # gsplat's split samples from the global generator
         self.gaussians = initial_gaussians(scene, cfg, self.extent, self.device)
         self.optimizers = make_optimizers(self.gaussians, cfg, self.extent)
-        self.densifier = Densifier(cfg.densify, scene_scale=self.extent)
+        densify = cfg.densify
+        if cfg.mode != "3dgs":  # growth goes on while the medium settles (DensifyConfig.medium_refine_factor)
+            densify = replace(densify, refine_stop=round(densify.refine_stop * densify.medium_refine_factor))
+        self.densifier = Densifier(densify, scene_scale=self.extent)
         self.densifier.check(self.gaussians, self.optimizers)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)  # [3]
         self.medium: MediumTerm | None = None

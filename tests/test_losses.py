@@ -156,10 +156,10 @@ def test_point_range_map_follows_the_points_neighbourhood():
     xs = torch.randint(0, W, (400,), generator=torch.Generator().manual_seed(0))
     ys = torch.randint(0, H, (400,), generator=torch.Generator().manual_seed(1))
     ranges = torch.where(xs < W // 2, 4.0, 12.0)  # near on the left, far on the right
-    m = point_range_map(view, ys * W + xs, ranges)
+    m = point_range_map(view, ys * W + xs, ranges).range
     assert m.shape[:2] == (1, 1) and m.shape[-1] <= 96 and torch.isfinite(m).all()
     assert torch.allclose(m[..., :, :10], torch.tensor(4.0)) and torch.allclose(m[..., :, -10:], torch.tensor(12.0))
-    assert point_range_map(view, torch.zeros(0, dtype=torch.long), torch.zeros(0)).numel() == 0
+    assert point_range_map(view, torch.zeros(0, dtype=torch.long), torch.zeros(0)).range.numel() == 0
 
 
 def test_point_range_map_follows_a_plane_beyond_its_points():
@@ -174,7 +174,7 @@ def test_point_range_map_follows_a_plane_beyond_its_points():
     g = torch.Generator().manual_seed(0)
     xs, ys = torch.randint(0, W, (300,), generator=g), torch.randint(H // 2, H, (300,), generator=g)
     inv_r = lambda y: 0.02 + 0.3 * (y.double() + 0.5) / H  # noqa: E731  (range 3..50 from bottom to top)
-    m = point_range_map(view, ys * W + xs, (1 / inv_r(ys)).float())
+    m = point_range_map(view, ys * W + xs, (1 / inv_r(ys)).float()).range
     cell = H / m.shape[-2]
     rows = torch.arange(m.shape[-2])
     truth = 1 / inv_r((rows + 0.5) * cell - 0.5)
@@ -186,3 +186,65 @@ def test_point_range_map_follows_a_plane_beyond_its_points():
     # It followed the slope: the true far seabed is within the band, where depth_band_loss leaves it alone (the
     # nearest points' own range, 3-6, would have put it 8x too far).
     assert torch.all(truth[far] < DEPTH_BAND * got[far]), (got[far], truth[far])
+
+
+def _oblique_points(W: int, H: int, horizon_row: float):
+    """Sparse points in the lower half of an oblique view of flat seabed whose horizon is at ``horizon_row``
+    (1/r linear in the row, 0 at the horizon): (pixels, ranges, 1/r as a function of the row)."""
+    g = torch.Generator().manual_seed(0)
+    xs, ys = torch.randint(0, W, (300,), generator=g), torch.randint(H // 2, H, (300,), generator=g)
+    inv_r = lambda y: 0.3 * ((y.double() + 0.5) - horizon_row) / H  # noqa: E731
+    return ys * W + xs, (1 / inv_r(ys)).float(), inv_r
+
+
+def test_cover_range_map_predicts_the_seabed_in_sight_and_not_the_sky():
+    """Below the horizon the plane's range is kept; above it (open water) and where the plane runs out to a
+    range the points never came near, nothing is predicted."""
+    from types import SimpleNamespace
+
+    from pipeline.medium.term import COVER_MAX_RANGE, cover_range_map, point_range_map
+
+    W, H = 160, 120
+    view = SimpleNamespace(camera=SimpleNamespace(width=W, height=H))
+    pixels, ranges, inv_r = _oblique_points(W, H, horizon_row=30.0)
+    rm = point_range_map(view, pixels, ranges)
+    cover = cover_range_map(rm, ranges)[0, 0]
+    rows = (torch.arange(cover.shape[0]) + 0.5) * (H / cover.shape[0]) - 0.5
+    sky = rows < 25  # above the horizon (row 30), with a margin for the fit's ridge
+    assert torch.isinf(cover[sky]).all()
+    assert not rm.fitted[0, 0][sky].any()  # the held bound, not a fit
+    limit = COVER_MAX_RANGE * float(ranges.double().quantile(0.95))
+    truth = 1 / inv_r(rows)
+    seen = (rows >= H // 2)
+    assert torch.isfinite(cover[seen]).all()
+    assert torch.allclose(cover[seen].median(dim=1).values.double(), truth[seen], rtol=0.1)
+    assert torch.isinf(cover[rm.range[0, 0] >= limit]).all()
+    beyond = (truth > 3 * limit) & ~sky  # just below the horizon: too far out to trust the plane
+    assert beyond.any() and torch.isinf(cover[beyond]).float().mean() > 0.9
+
+
+def test_cover_weight_follows_the_water():
+    from pipeline.medium.term import COVER_TRANSMISSION, cover_weight
+
+    r = torch.tensor([[[[1.0, 10.0, 20.0, float("inf")]]]])
+    lo, hi = COVER_TRANSMISSION
+    w = cover_weight(r, torch.tensor(0.1))
+    a = torch.exp(-0.1 * r)
+    assert torch.allclose(w, ((a - lo) / (hi - lo)).clamp(0, 1))
+    assert w[0, 0, 0, 0] == 1.0 and w[0, 0, 0, -1] == 0.0  # in clear sight: full; no surface predicted: none
+    assert cover_weight(r, torch.tensor(1.0))[0, 0, 0, 1:].eq(0).all()  # murky: the far seabed is not asked for
+
+
+def test_cover_loss_pulls_alpha_up_where_the_surface_is_in_sight():
+    alpha = torch.rand(1, 1, 8, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    alpha.requires_grad_(True)
+    weight = torch.zeros(1, 1, 4, 6, dtype=torch.float64)
+    weight[..., :, :3] = 1.0  # a surface in sight on the left half only
+    loss = L.cover_loss(alpha, weight)
+    loss.backward()
+    assert (alpha.grad[..., :, :5] < 0).all()  # descent raises alpha there
+    assert (alpha.grad[..., :, 7:] == 0).all()  # and leaves open water alone
+    assert L.cover_loss(torch.ones(1, 1, 8, 12), torch.ones(1, 1, 4, 6)) == 0
+    assert L.cover_loss(alpha, torch.zeros(0)) == 0
+    a = alpha.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: L.cover_loss(x, weight), (a,), eps=1e-6, atol=1e-5)

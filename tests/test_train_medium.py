@@ -105,3 +105,20 @@ def test_no_opacity_reset_near_or_after_the_medium_start(medium_scene, preset):
     assert all(it <= tr.medium.start - 2 * cfg.densify.refine_every for it in resets)
     cfg.mode = "3dgs"
     assert Trainer(scene, images, cfg).densifier.strategy.reset_until == 0
+
+
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_medium_modes_refine_while_the_medium_settles(medium_scene, preset):
+    """Growth stopped 500 iterations after the medium switched on (fast) and the far seabed of oblique views
+    was given up as water with no way to grow back (docs/DECISIONS.md, fix 6): medium modes refine until
+    ``medium_refine_factor`` x refine_stop, 3dgs keeps the preset's schedule."""
+    from pipeline.config import train_preset
+
+    scene, images = medium_scene
+    cfg = train_preset(preset)
+    cfg.mode, cfg.backend = "homogeneous", "cpu"
+    stop = Trainer(scene, images, cfg).densifier.strategy.refine_stop_iter
+    assert stop == round(cfg.densify.refine_stop * cfg.densify.medium_refine_factor) > cfg.densify.refine_stop
+    assert stop < cfg.iterations
+    cfg.mode = "3dgs"
+    assert Trainer(scene, images, cfg).densifier.strategy.refine_stop_iter == cfg.densify.refine_stop

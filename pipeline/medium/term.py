@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import asdict
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -63,11 +63,21 @@ def surface_pixels(scene: Scene, view: View, device: torch.device) -> tuple[Tens
 
 
 RANGE_MAP_CELLS = 96  # the reference range map has about this many cells along the image's long side
+COVER_MAX_RANGE = 5.0  # cover_range_map trusts a plane fit out to this many times the view's far points
+COVER_TRANSMISSION = (0.05, 0.15)  # cover_weight: no weight below the first transmission, full from the second
 RANGE_MAP_NEIGHBOURS = 32  # each cell fits the inverse range of this many nearest sparse-point pixels
 RANGE_MAP_RIDGE = 1e-4  # ridge on the fit's slope (per neighbour, coordinates in image long sides)
 
 
-def point_range_map(view: View, pixels: Tensor, ranges: Tensor) -> Tensor:
+class RangeMap(NamedTuple):
+    """:func:`point_range_map`'s grid: the range per cell, and whether the cell's plane fit found the surface
+    (False where it ran out to the horizon and the range is only the held bound)."""
+
+    range: Tensor  # [1, 1, h, w]
+    fitted: Tensor  # [1, 1, h, w] bool
+
+
+def point_range_map(view: View, pixels: Tensor, ranges: Tensor) -> RangeMap:
     """A coarse map of how far the surface is from the camera, everywhere in the view, from its sparse points.
 
     Each cell of a ~96-cell grid (long side) fits the inverse range 1/r of the 32 point pixels nearest its centre
@@ -76,11 +86,11 @@ def point_range_map(view: View, pixels: Tensor, ranges: Tensor) -> Tensor:
     view, where SfM found points only in the near part) it follows the slope instead of repeating the nearest
     points' range. A fit that runs out to or past the horizon (1/r at most a tenth of its neighbours'
     smallest) is held at ten times their largest range, and no fit comes nearer than their nearest.
-    (pixels, ranges) as :func:`surface_pixels`. Returns [1, 1, h, w] (h, w: the grid), or an empty tensor when
-    the view saw no point; its cost is bounded by the grid."""
+    (pixels, ranges) as :func:`surface_pixels`. Returns the grid (h, w ~96 on the long side) as a
+    :class:`RangeMap`, empty when the view saw no point; its cost is bounded by the grid."""
     W, H = view.camera.width, view.camera.height
     if pixels.numel() == 0:
-        return ranges.new_zeros((0,))
+        return RangeMap(ranges.new_zeros((0,)), torch.zeros(0, dtype=torch.bool, device=ranges.device))
     cell = max(1, int(np.ceil(max(W, H) / RANGE_MAP_CELLS)))
     gw, gh = int(np.ceil(W / cell)), int(np.ceil(H / cell))
     side = float(max(W, H))
@@ -90,7 +100,7 @@ def point_range_map(view: View, pixels: Tensor, ranges: Tensor) -> Tensor:
     inv = 1.0 / ranges.double()
     k = min(RANGE_MAP_NEIGHBOURS, len(px))
     ridge = torch.diag(torch.tensor([0.0, 1.0, 1.0], dtype=px.dtype, device=px.device)) * RANGE_MAP_RIDGE * k
-    out = []
+    out, fitted = [], []
     for chunk in centres.split(2048):
         idx = torch.cdist(chunk, px).topk(k, largest=False).indices  # [n, k]
         d = (px[idx] - chunk[:, None]) / side  # [n, k, 2]
@@ -99,7 +109,30 @@ def point_range_map(view: View, pixels: Tensor, ranges: Tensor) -> Tensor:
         coef = torch.linalg.solve(X.transpose(1, 2) @ X + ridge, (X.transpose(1, 2) @ y[..., None]))[:, 0, 0]
         lo, hi = 0.1 * y.min(dim=1).values, y.max(dim=1).values  # never nearer than the nearest neighbour
         out.append(1.0 / torch.minimum(torch.where(coef > lo, coef, lo), hi))
-    return torch.cat(out).reshape(1, 1, gh, gw).to(ranges.dtype)
+        fitted.append(coef > lo)
+    shape = (1, 1, gh, gw)
+    return RangeMap(torch.cat(out).reshape(shape).to(ranges.dtype), torch.cat(fitted).reshape(shape))
+
+
+def cover_range_map(rm: RangeMap, ranges: Tensor) -> Tensor:
+    """The range of the surface the sparse points predict, where they predict one: ``rm.range`` where the
+    fit did not run to the horizon and lies within ``COVER_MAX_RANGE`` times the view's 95th-percentile point
+    range, ∞ elsewhere (no prediction). [1, 1, h, w], or empty when the view saw no point."""
+    if rm.range.numel() == 0:
+        return rm.range
+    limit = COVER_MAX_RANGE * float(ranges.double().quantile(0.95))
+    keep = rm.fitted & (rm.range < limit)
+    return torch.where(keep, rm.range, torch.full_like(rm.range, float("inf")))
+
+
+def cover_weight(cover_map: Tensor, beta: Tensor) -> Tensor:
+    """How visible the predicted surface is through the water: the transmission exp(−β·r) at the
+    :func:`cover_range_map` range r under the medium's current mean β_D, ramped from 0 at
+    ``COVER_TRANSMISSION[0]`` to 1 at ``COVER_TRANSMISSION[1]``; 0 where no surface is predicted. Same grid."""
+    if cover_map.numel() == 0:
+        return cover_map
+    lo, hi = COVER_TRANSMISSION
+    return ((torch.exp(-beta * cover_map) - lo) / (hi - lo)).clamp(0.0, 1.0)
 
 
 MIN_DENSIFY_TRANSMISSION = 0.05  # the densification gain 1/A is capped at 20
@@ -148,7 +181,9 @@ class MediumTerm:
         self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
                     for v in views]  # per view [1, 1, H, W]
         self.surface = [surface_pixels(scene, v, device) for v in views]  # per view: (pixels [K], ranges [K])
-        self.range_maps = [point_range_map(v, *s) for v, s in zip(views, self.surface)]  # per view [1,1,h,w]
+        maps = [point_range_map(v, *s) for v, s in zip(views, self.surface)]
+        self.range_maps = [m.range for m in maps]  # per view [1, 1, h, w]
+        self.cover_maps = [cover_range_map(m, s[1]) for m, s in zip(maps, self.surface)]  # per view [1, 1, h, w]
         self.transmission = view_transmission(scene, views, init["init_beta"])  # per view: mean A at its range
         self.start = int(round(cfg.start_fraction * total_iterations))
         # Short runs scale the schedule: the paper's rates are for ~20k medium iterations.
@@ -191,7 +226,8 @@ class MediumTerm:
         _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha),
                                  self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled,
                                  anchor=self._anchor(out, D, _nchw(alpha)), surface=self.surface[view_index],
-                                 range_map=self.range_maps[view_index])
+                                 range_map=self.range_maps[view_index],
+                                 cover=cover_weight(self.cover_maps[view_index], out.beta_eff.detach().mean()))
         return weighted
 
     def _anchor(self, out: MediumOutput, D: Tensor, alpha: Tensor) -> dict[str, tuple[Tensor, Tensor]] | None:
