@@ -129,15 +129,22 @@ def view_quality(name: str, alpha: np.ndarray, points_xy: np.ndarray, water: np.
     return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)), pd, fs, ud)
 
 
+def _flagged(views: Sequence[ViewQuality], field: str, limit: float, below: bool
+             ) -> tuple[list[ViewQuality], ViewQuality | None]:
+    """The views whose measurement ``field`` is below (or above) ``limit``, and the worst of them (None: none)."""
+    flagged = [q for q in views if (v := getattr(q, field)) is not None and (v < limit if below else v > limit)]
+    worst = (min if below else max)(flagged, key=lambda q: getattr(q, field)) if flagged else None
+    return flagged, worst
+
+
 def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: int) -> tuple[bool, list[str]]:
     """(collapsed, warnings). Collapsed: a view lost its sparse points (point coverage below
     ``COLLAPSE_POINT_COVERAGE``) or the Gaussians are fewer than ``COLLAPSE_BUDGET_SHARE`` of the budget."""
     warnings: list[str] = []
     collapsed = False
-    lost = [q for q in views if q.point_coverage is not None and q.point_coverage < COLLAPSE_POINT_COVERAGE]
-    if lost:
+    lost, worst = _flagged(views, "point_coverage", COLLAPSE_POINT_COVERAGE, below=True)
+    if worst:
         collapsed = True
-        worst = min(lost, key=lambda q: q.point_coverage or 0.0)
         warnings.append(f"{len(lost)} of {len(views)} training views lost their scene (sparse points covered: "
                         f"worst {worst.name} {100 * (worst.point_coverage or 0):.0f}%, limit "
                         f"{100 * COLLAPSE_POINT_COVERAGE:.0f}%)")
@@ -146,21 +153,18 @@ def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: in
     if thin:
         warnings.append(f"{len(thin)} training views partly uncovered (sparse points covered below "
                         f"{100 * WARN_POINT_COVERAGE:.0f}%: {', '.join(q.name for q in thin[:5])})")
-    deep = [q for q in views if q.point_depth is not None and q.point_depth < WARN_POINT_DEPTH]
-    if deep:
-        worst = min(deep, key=lambda q: q.point_depth or 0.0)
+    deep, worst = _flagged(views, "point_depth", WARN_POINT_DEPTH, below=True)
+    if worst:
         warnings.append(f"{len(deep)} training views render under {100 * WARN_POINT_DEPTH:.0f}% of their sparse points "
                         f"at the points' distance (worst {worst.name} {100 * (worst.point_depth or 0):.0f}%): the "
                         f"rest of the surface there is drawn far behind, where it shows only the water")
-    far = [q for q in views if q.far_share is not None and q.far_share > WARN_FAR_SHARE]
-    if far:
-        worst = max(far, key=lambda q: q.far_share or 0.0)
+    far, worst = _flagged(views, "far_share", WARN_FAR_SHARE, below=False)
+    if worst:
         warnings.append(f"{len(far)} training views draw part of their surface beyond {FAR_FACTOR:g}x their sparse "
                         f"points' distance (worst {worst.name} {100 * (worst.far_share or 0):.0f}% of its pixels), "
                         f"where it shows only the water: the restored image is dark there")
-    bare = [q for q in views if q.uncovered_detail is not None and q.uncovered_detail > WARN_UNCOVERED_DETAIL]
-    if bare:
-        worst = max(bare, key=lambda q: q.uncovered_detail or 0.0)
+    bare, worst = _flagged(views, "uncovered_detail", WARN_UNCOVERED_DETAIL, below=False)
+    if worst:
         warnings.append(f"{len(bare)} training views leave part of what the photo shows uncovered (worst {worst.name}: "
                         f"{100 * (worst.uncovered_detail or 0):.0f}% of its pixels show detail the model renders as "
                         f"open water): the restored image is dark there")

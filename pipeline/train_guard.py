@@ -58,13 +58,6 @@ def safer_config(cfg: TrainConfig) -> tuple[TrainConfig, dict[str, Any]]:
     return c, changes
 
 
-def training_views(views: Sequence[View], downscale: int) -> list[View]:
-    """``views`` at the training resolution (cameras divided by the integer ``downscale``)."""
-    if downscale == 1:
-        return list(views)
-    return [View(v.name, v.camera.scaled(1.0 / downscale), v.R, v.t, v.image_path) for v in views]
-
-
 def gaussian_budget(views: Sequence[View], cap: int) -> int:
     """What the Gaussian count is judged against: ``pipeline.budget.pixel_budget`` of the training pixels (about twice
     what published 3DGS runs end with, ``pipeline.budget``), never above the run's cap (0 = none). Not the cap
