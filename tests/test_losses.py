@@ -233,6 +233,8 @@ def test_cover_weight_follows_the_water():
     assert torch.allclose(w, ((a - lo) / (hi - lo)).clamp(0, 1))
     assert w[0, 0, 0, 0] == 1.0 and w[0, 0, 0, -1] == 0.0  # in clear sight: full; no surface predicted: none
     assert cover_weight(r, torch.tensor(1.0))[0, 0, 0, 1:].eq(0).all()  # murky: the far seabed is not asked for
+    # Per channel, the clearest decides: red strangled (β 1.0) but green clear (0.1) still shows the seabed.
+    assert torch.equal(cover_weight(r, torch.tensor([1.0, 0.1, 0.5])), w)
 
 
 def test_cover_loss_pulls_alpha_up_where_the_surface_is_in_sight():

@@ -127,12 +127,15 @@ def cover_range_map(rm: RangeMap, ranges: Tensor) -> Tensor:
 
 def cover_weight(cover_map: Tensor, beta: Tensor) -> Tensor:
     """How visible the predicted surface is through the water: the transmission exp(−β·r) at the
-    :func:`cover_range_map` range r under the medium's current mean β_D, ramped from 0 at
-    ``COVER_TRANSMISSION[0]`` to 1 at ``COVER_TRANSMISSION[1]``; 0 where no surface is predicted. Same grid."""
+    :func:`cover_range_map` range r, ramped from 0 at ``COVER_TRANSMISSION[0]`` to 1 at
+    ``COVER_TRANSMISSION[1]``; 0 where no surface is predicted. Same grid. ``beta`` is the medium's current
+    β_D per channel (or one value); the clearest channel decides, since the seabed is in sight while any channel
+    carries it (with the channels' mean, red-strangled water called seabed out of sight that green still
+    showed: photo medium s1 in ``dualphys`` left 5 % of a view's visible seabed as veil; docs/DECISIONS.md)."""
     if cover_map.numel() == 0:
         return cover_map
     lo, hi = COVER_TRANSMISSION
-    return ((torch.exp(-beta * cover_map) - lo) / (hi - lo)).clamp(0.0, 1.0)
+    return ((torch.exp(-beta.min() * cover_map) - lo) / (hi - lo)).clamp(0.0, 1.0)
 
 
 MIN_DENSIFY_TRANSMISSION = 0.05  # the densification gain 1/A is capped at 20
@@ -227,7 +230,7 @@ class MediumTerm:
                                  self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled,
                                  anchor=self._anchor(out, D, _nchw(alpha)), surface=self.surface[view_index],
                                  range_map=self.range_maps[view_index],
-                                 cover=cover_weight(self.cover_maps[view_index], out.beta_eff.detach().mean()))
+                                 cover=cover_weight(self.cover_maps[view_index], out.beta_eff.detach()))
         return weighted
 
     def _anchor(self, out: MediumOutput, D: Tensor, alpha: Tensor) -> dict[str, tuple[Tensor, Tensor]] | None:
