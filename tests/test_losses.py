@@ -162,6 +162,15 @@ def test_point_range_map_follows_the_points_neighbourhood():
     assert point_range_map(view, torch.zeros(0, dtype=torch.long), torch.zeros(0)).range.numel() == 0
 
 
+def _oblique_points(W: int, H: int, horizon_row: float):
+    """Sparse points in the lower half of an oblique view of flat seabed whose horizon is at ``horizon_row``
+    (1/r linear in the row, 0 at the horizon): (pixels, ranges, 1/r as a function of the row)."""
+    g = torch.Generator().manual_seed(0)
+    xs, ys = torch.randint(0, W, (300,), generator=g), torch.randint(H // 2, H, (300,), generator=g)
+    inv_r = lambda y: 0.3 * ((y.double() + 0.5) - horizon_row) / H  # noqa: E731
+    return ys * W + xs, (1 / inv_r(ys)).float(), inv_r
+
+
 def test_point_range_map_follows_a_plane_beyond_its_points():
     """An oblique view of flat seabed: SfM found points only in the near (lower) half; the far half's range is
     the plane's, not the nearest points' (1/r of a plane is linear in the pixel)."""
@@ -171,10 +180,8 @@ def test_point_range_map_follows_a_plane_beyond_its_points():
 
     W, H = 160, 120
     view = SimpleNamespace(camera=SimpleNamespace(width=W, height=H))
-    g = torch.Generator().manual_seed(0)
-    xs, ys = torch.randint(0, W, (300,), generator=g), torch.randint(H // 2, H, (300,), generator=g)
-    inv_r = lambda y: 0.02 + 0.3 * (y.double() + 0.5) / H  # noqa: E731  (range 3..50 from bottom to top)
-    m = point_range_map(view, ys * W + xs, (1 / inv_r(ys)).float()).range
+    pixels, ranges, inv_r = _oblique_points(W, H, horizon_row=-H / 15)  # 1/r = 0.02 + 0.3 (y + 0.5) / H: 3..50
+    m = point_range_map(view, pixels, ranges).range
     cell = H / m.shape[-2]
     rows = torch.arange(m.shape[-2])
     truth = 1 / inv_r((rows + 0.5) * cell - 0.5)
@@ -186,15 +193,6 @@ def test_point_range_map_follows_a_plane_beyond_its_points():
     # It followed the slope: the true far seabed is within the band, where depth_band_loss leaves it alone (the
     # nearest points' own range, 3-6, would have put it 8x too far).
     assert torch.all(truth[far] < DEPTH_BAND * got[far]), (got[far], truth[far])
-
-
-def _oblique_points(W: int, H: int, horizon_row: float):
-    """Sparse points in the lower half of an oblique view of flat seabed whose horizon is at ``horizon_row``
-    (1/r linear in the row, 0 at the horizon): (pixels, ranges, 1/r as a function of the row)."""
-    g = torch.Generator().manual_seed(0)
-    xs, ys = torch.randint(0, W, (300,), generator=g), torch.randint(H // 2, H, (300,), generator=g)
-    inv_r = lambda y: 0.3 * ((y.double() + 0.5) - horizon_row) / H  # noqa: E731
-    return ys * W + xs, (1 / inv_r(ys)).float(), inv_r
 
 
 def test_cover_range_map_predicts_the_seabed_in_sight_and_not_the_sky():
