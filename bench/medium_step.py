@@ -41,8 +41,8 @@ def main() -> None:
     from pipeline.config import DensifyConfig, MediumConfig, SynthConfig, TrainConfig
     from pipeline.scene.images import read_image
     from pipeline.scene.loader import load_scene
-    from pipeline.scene.synth import generate_scene
-    from pipeline.train import Trainer
+    from pipeline.synth.procedural import generate_scene
+    from pipeline.train.trainer import Trainer
 
     with tempfile.TemporaryDirectory() as tmp:
         root = generate_scene(SynthConfig(views=args.views, width=w, height=h, preset="medium", seed=0), tmp)

@@ -32,8 +32,9 @@ def main() -> None:
     args = ap.parse_args()
 
     from pipeline.config import SynthConfig
-    from pipeline.job import JobOptions, run_job
-    from pipeline.scene.synth import generate_scene
+    from pipeline.job.options import JobOptions
+    from pipeline.job.runner import run_job
+    from pipeline.synth.procedural import generate_scene
 
     w, h = (int(x) for x in args.size.split("x"))
     scene = args.out / f"scene_{args.views}_{args.size}"

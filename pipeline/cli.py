@@ -48,8 +48,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
     w, h = args.size
     t0 = time.perf_counter()
     if args.family == "photo":
-        from .scene.synth_photo import PhotoSynthConfig, generate_photo_scene
-        from .scene.synth_photo_texture import TextureFolderError
+        from pipeline.synth.photo import PhotoSynthConfig, generate_photo_scene
+        from pipeline.synth.photo_texture import TextureFolderError
 
         if args.path != "survey":
             print("dualphys synth: --path applies to the procedural family only (the photo family flies its "
@@ -63,8 +63,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
             return 1
         views, preset = photo.views, photo.preset
     else:
-        from .config import SynthConfig
-        from .scene.synth import generate_scene
+        from pipeline.config import SynthConfig
+        from pipeline.synth.procedural import generate_scene
 
         cfg = SynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed, path=args.path)
         out = generate_scene(cfg, args.out)
@@ -75,8 +75,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_sfm(args: argparse.Namespace) -> int:
-    from .config import SfmConfig
-    from .sfm import SfmError, run_sfm
+    from pipeline.config import SfmConfig
+    from pipeline.sfm.recipe import SfmError, run_sfm
 
     cfg = SfmConfig(matcher=args.matcher)
     try:
@@ -94,12 +94,13 @@ def _db(x: float | None) -> str:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Generate a scene with known water and run the job on it end to end."""
-    from .config import SynthConfig
-    from .job import JobOptions, StageContext, run_job
-    from .scene.align import align_to_reference
-    from .scene.loader import load_scene
-    from .scene.synth import generate_scene
-    from .scene.water_model import WATER_PRESETS
+    from pipeline.config import SynthConfig
+    from pipeline.job.options import JobOptions, StageContext
+    from pipeline.job.runner import run_job
+    from pipeline.scene.align import align_to_reference
+    from pipeline.scene.loader import load_scene
+    from pipeline.synth.procedural import generate_scene
+    from pipeline.synth.water import WATER_PRESETS
 
     out = Path(args.out)
     t0 = time.perf_counter()
@@ -157,8 +158,10 @@ def _fail(command: str, message: str) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """The whole job in this process, with progress bars; finished stages (matching markers) are skipped."""
-    from .job import STAGES, JobOptions, StageContext, run_job
-    from .progress import StageProgress
+    from pipeline.job.options import JobOptions, StageContext
+    from pipeline.job.progress import StageProgress
+    from pipeline.job.runner import run_job
+    from pipeline.job.table import STAGES
 
     src = Path(args.input)
     if not src.exists():
@@ -207,8 +210,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_render(args: argparse.Namespace) -> int:
     """Restored / with-water (or any exported) images of a trained job, for its views and novel ones."""
-    from .render_job import RenderError, render_job
-    from .scene.loader import SceneLayoutError
+    from pipeline.evaluate.rerender import RenderError, render_job
+    from pipeline.scene.loader import SceneLayoutError
 
     views: str | list[str] = args.views
     if args.views not in ("all", "none"):
@@ -226,14 +229,14 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def cmd_ablate(args: argparse.Namespace) -> int:
     """The paper's Table 2 on a generated scene with ground truth."""
-    from .ablate import AblationConfig, format_table, run_ablation
+    from pipeline.evaluate.ablate import AblationConfig, format_table, run_ablation
 
     w, h = args.size
     only = tuple(n.strip() for n in args.only.split(",") if n.strip()) if args.only else ()
     cfg = AblationConfig(views=args.views, width=w, height=h, water=args.water, iterations=args.iterations,
                          seed=args.seed, rows=args.rows, only=only)
     try:
-        from .ablate import select_rows
+        from pipeline.evaluate.ablate import select_rows
 
         n = len(select_rows(cfg))
     except ValueError as e:
@@ -254,7 +257,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
 
 def cmd_train_classifier(args: argparse.Namespace) -> int:
-    from .water import train_classifier
+    from pipeline.water import train_classifier
 
     out = args.out or Path(__file__).resolve().parent / "data" / "water_classifier.json"  # the shipped weights
     metrics = train_classifier(out, seed=args.seed)
@@ -289,8 +292,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera path of the procedural family")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--family", default="procedural", choices=["procedural", "photo"],
-                   help="procedural: bright procedural seabed, water per pixel (pipeline.scene.synth); photo: "
-                        "seabed from real photographs, water per supersample (pipeline.scene.synth_photo)")
+                   help="procedural: bright procedural seabed, water per pixel (pipeline.synth.procedural); photo: "
+                        "seabed from real photographs, water per supersample (pipeline.synth.photo)")
     s.set_defaults(func=cmd_synth)
 
     s = sub.add_parser("sfm", help="structure from motion: images -> posed PINHOLE cameras + sparse points")
@@ -328,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--iterations", type=int, default=1500, help="training iterations (CPU budget)")
     s.set_defaults(func=cmd_demo)
 
-    from .job import JOB_MODES  # light: no torch
+    from pipeline.job.options import JOB_MODES
 
     s = sub.add_parser("run", help="run a whole job (ingest, sfm, classify, train, evaluate, export) in this "
                                    "process; re-running resumes")

@@ -17,7 +17,7 @@ Matcher = Literal["auto", "exhaustive", "sequential"]
 
 @dataclass
 class SynthConfig:
-    """The synthetic underwater scene generator (``pipeline.scene.synth``)."""
+    """The synthetic underwater scene generator (``pipeline.synth.procedural``)."""
 
     views: int = 24  # number of camera views
     width: int = 320  # image width in pixels
@@ -37,9 +37,9 @@ class SynthConfig:
 
 @dataclass
 class SfmConfig:
-    """The pycolmap SfM recipe (``pipeline.sfm``)."""
+    """The pycolmap SfM recipe (``pipeline.sfm.recipe``)."""
 
-    matcher: Matcher = "auto"  # auto: see pipeline.sfm.choose_matcher for the rule
+    matcher: Matcher = "auto"  # auto: see pipeline.sfm.recipe.choose_matcher for the rule
     sequential_overlap: int = 10  # neighbours matched per frame in sequential mode
     exhaustive_max_images: int = 60  # auto uses exhaustive up to this many images
     max_image_size: int = 1600  # SIFT works on images downscaled to this longest side
@@ -132,7 +132,7 @@ class MediumConfig:
     water_factor: float = 1.0  # T in eq. 5
     init_optical_depth: tuple[float, float, float] = (0.6, 0.3, 0.25)  # β·(median scene depth) at the start
     losses: tuple[str, ...] = ("ab", "wat", "edge", "ms", "floater", "surface")  # enabled terms beyond L_basic
-    loss_weights: dict[str, float] = field(default_factory=dict)  # overrides of pipeline.losses.LossWeights
+    loss_weights: dict[str, float] = field(default_factory=dict)  # overrides of pipeline.medium.losses.LossWeights
     max_sh_degree: int = 1  # low-order SH keeps J view-consistent, so range-dependent colour goes to the water
     densify_transmission: bool = True  # densify on the scene's scale: screen gradients / the view's transmission
     colour_prior: Literal["tracks", "grey_world"] = "tracks"  # L_attenuation: anchor β_D to the multi-view
@@ -151,7 +151,7 @@ Backend = Literal["auto", "torch", "cpu", "cuda"]
 
 @dataclass
 class TrainConfig:
-    """Training (``pipeline.train``). Defaults are graphdeco 3DGS's 30k-iteration recipe."""
+    """Training (``pipeline.train.trainer``). Defaults are graphdeco 3DGS's 30k-iteration recipe."""
 
     mode: TrainMode = "3dgs"  # "3dgs": no medium; "homogeneous": eq. 3's global water; "dualphys": eqs. 5-8
     iterations: int = 30_000

@@ -55,7 +55,7 @@ from typing import BinaryIO
 
 from pydantic import BaseModel, Field, ValidationError
 
-from pipeline.stages import atomic_write_text
+from pipeline.job.markers import atomic_write_text
 
 from .manifest import Manifest
 from .options import JobOptionsIn

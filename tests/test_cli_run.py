@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.config import SynthConfig
-from pipeline.scene.synth import generate_scene
+from pipeline.synth.procedural import generate_scene
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,7 @@ def test_ablate_prints_the_table_and_writes_json(tmp_path, capsys):
 def test_progress_lines_without_tqdm():
     import io
 
-    from pipeline.progress import StageProgress
+    from pipeline.job.progress import StageProgress
 
     buf = io.StringIO()
     p = StageProgress(["ingest", "train"], stream=buf, use_tqdm=False, min_interval=3600)

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .formation import MAX_EXPONENT
+from pipeline.medium.formation import MAX_EXPONENT
 
 
 def rgb_guided_attenuation(D: Tensor, w: Tensor, beta: Tensor, E: Tensor, gamma: float, T: float | Tensor) -> Tensor:

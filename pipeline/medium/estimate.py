@@ -8,7 +8,7 @@ grey-world prior, which makes a sandy seabed grey). The same idea underlies Sea-
 estimates (Akkaynak & Treibitz 2019); here the multi-view tracks of the sparse model replace its depth map.
 
 The medium starts training at these coefficients, and ``L_attenuation`` keeps the effective global β_D near
-them (``pipeline.losses.attenuation_anchor``): the medium networks still learn the spatial modulation of
+them (``pipeline.medium.losses.attenuation_anchor``): the medium networks still learn the spatial modulation of
 eqs. 5 and 8 around them. Ranges are distances along the ray in scene units, so the coefficients are in
 1/scene-unit, like the medium's.
 
@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from ..scene.types import Sightings, View
+from pipeline.scene.types import Sightings, View
 
 log = logging.getLogger(__name__)
 

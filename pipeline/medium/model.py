@@ -19,9 +19,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .attenuation import EdgePerception, rgb_guided_attenuation
-from .formation import composite_over_water, homogeneous_backscatter, transmission
-from .scattering import MultiScaleFeatures, depth_confidence, depth_edge_factor, multiscale_backscatter
+from pipeline.medium.attenuation import EdgePerception, rgb_guided_attenuation
+from pipeline.medium.formation import composite_over_water, homogeneous_backscatter, transmission
+from pipeline.medium.scattering import MultiScaleFeatures, depth_confidence, depth_edge_factor, multiscale_backscatter
 
 
 @dataclass

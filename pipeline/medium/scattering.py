@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .formation import MAX_EXPONENT
+from pipeline.medium.formation import MAX_EXPONENT
 
 EPS = 1e-6
 

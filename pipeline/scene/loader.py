@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .colmap import UnsupportedCameraError, has_model, quiet_pycolmap, read_colmap
-from .images import read_image, resize_area_to
-from .types import Scene, View
+from pipeline.scene.colmap import UnsupportedCameraError, has_model, quiet_pycolmap, read_colmap
+from pipeline.scene.images import read_image, resize_area_to
+from pipeline.scene.types import Scene, View
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +67,7 @@ def find_layout(root: str | os.PathLike[str]) -> tuple[Path, Path]:
     if missing:
         raise SceneLayoutError(
             f"{root} is not a posed scene: it lacks {' and '.join(missing)}. For a folder of unposed images "
-            f"run the SfM stage first (pipeline.sfm.run_sfm)."
+            f"run the SfM stage first (pipeline.sfm.recipe.run_sfm)."
         )
     assert images is not None and sparse is not None
     return images, sparse

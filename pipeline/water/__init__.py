@@ -14,8 +14,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .classifier import WaterClassifier, load_classifier
-from .controller import (
+from pipeline.water.classifier import WaterClassifier, load_classifier
+from pipeline.water.controller import (
     WATER_TYPES,
     ControllerConfig,
     ControllerSettings,
@@ -24,10 +24,10 @@ from .controller import (
     medium_start_iteration,
     water_index,
 )
-from .decision import WaterDecision, classify
+from pipeline.water.decision import WaterDecision, classify
 
 if TYPE_CHECKING:
-    from .training import ClassifierTrainConfig
+    from pipeline.water.training import ClassifierTrainConfig
 
 __all__ = [
     "WATER_TYPES",
@@ -50,6 +50,6 @@ def train_classifier(out_path: str | Path, seed: int = 0, cfg: ClassifierTrainCo
 
     The ``dualphys train-classifier`` entry point. See :func:`pipeline.water.training.train_classifier`.
     """
-    from .training import train_classifier as _train  # renders scenes: keep it out of the import path
+    from pipeline.water.training import train_classifier as _train  # renders scenes: keep it out of the import path
 
     return _train(out_path, seed=seed, cfg=cfg)

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .controller import WATER_TYPES
-from .features import FEATURE_NAMES, NUM_FEATURES
+from pipeline.water.controller import WATER_TYPES
+from pipeline.water.features import FEATURE_NAMES, NUM_FEATURES
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ The paper's rule, and how we read it where the wording is ambiguous:
 - Starting point (ours, not the paper's): the medium's initial optical depth β·(median scene depth) per
   channel follows the class — the colour cast the classifier recognises *is* an optical depth, so starting
   there is a measurement, not a guess. Without it, turbid scenes ended a short run with the medium carrying
-  under half the true backscatter (tests/test_no_collapse.py).
+  under half the true backscatter (tests/train/test_no_collapse.py).
 
 The factors are fields of :class:`ControllerConfig`, so the literal reading is one config change away.
 """

@@ -15,13 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..config import SynthConfig
-from ..scene.synth import make_camera, synth_views
-from ..scene.types import ray_length_factor
-from ..scene.water_model import underwater_image
-from .controller import WATER_TYPES
-from .features import image_features
-from .sampling import NuisanceSpec, camera_nuisance, sample_water, seabed_variation
+from pipeline.config import SynthConfig
+from pipeline.scene.types import ray_length_factor
+from pipeline.synth.procedural import make_camera, synth_views
+from pipeline.synth.water import underwater_image
+from pipeline.water.controller import WATER_TYPES
+from pipeline.water.features import image_features
+from pipeline.water.sampling import NuisanceSpec, camera_nuisance, sample_water, seabed_variation
 
 log = logging.getLogger(__name__)
 

@@ -9,9 +9,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .classifier import WaterClassifier, load_classifier
-from .controller import WATER_TYPES, ControllerConfig, ControllerSettings, WaterType, controller_settings, water_index
-from .features import blue_green_ratio, image_features, resize_short_side
+from pipeline.water.classifier import WaterClassifier, load_classifier
+from pipeline.water.controller import (
+    WATER_TYPES,
+    ControllerConfig,
+    ControllerSettings,
+    WaterType,
+    controller_settings,
+    water_index,
+)
+from pipeline.water.features import blue_green_ratio, image_features, resize_short_side
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 Classes are not the three presets alone but ranges around them, chosen from the Jerlov water types (Solonenko
 & Mobley 2015) and the effective coefficients of Akkaynak et al. (CVPR 2017); see
-:mod:`pipeline.scene.water_model`. Each preset sits near the (log) centre of its class; class edges lie near
+:mod:`pipeline.synth.water`. Each preset sits near the (log) centre of its class; class edges lie near
 the geometric midpoints between neighbouring presets, with small gaps (a class is a region of parameter space,
 its edges must be drawn somewhere). Coefficients per channel (R, G, B) in 1/m are a green value and ratios:
 
@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scene.water_model import WaterParams
+from pipeline.synth.water import WaterParams
 
 LUMA = (0.299, 0.587, 0.114)
 

@@ -18,10 +18,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .classifier import WaterClassifier, save_classifier
-from .controller import WATER_TYPES
-from .dataset import RenderSpec, make_samples, render_clean
-from .sampling import NuisanceSpec
+from pipeline.water.classifier import WaterClassifier, save_classifier
+from pipeline.water.controller import WATER_TYPES
+from pipeline.water.dataset import RenderSpec, make_samples, render_clean
+from pipeline.water.sampling import NuisanceSpec
 
 log = logging.getLogger(__name__)
 

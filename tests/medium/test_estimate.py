@@ -9,8 +9,8 @@ from pipeline.config import SynthConfig
 from pipeline.medium.estimate import Observations, fit_medium, gather_observations
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
-from pipeline.scene.synth import generate_scene
-from pipeline.scene.water_model import WATER_PRESETS
+from pipeline.synth.procedural import generate_scene
+from pipeline.synth.water import WATER_PRESETS
 
 
 def _exact_observations(water, n_points=400, per_point=6, seed=0) -> Observations:

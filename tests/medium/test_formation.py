@@ -9,9 +9,9 @@ import torch
 from pipeline.config import SynthConfig
 from pipeline.medium.formation import classical_formation, homogeneous_backscatter, transmission
 from pipeline.medium.model import Medium
-from pipeline.scene.synth import make_camera, synth_views
 from pipeline.scene.types import ray_length_factor
-from pipeline.scene.water_model import WATER_PRESETS, underwater_image
+from pipeline.synth.procedural import make_camera, synth_views
+from pipeline.synth.water import WATER_PRESETS, underwater_image
 
 
 def _set_water(m: Medium, beta_d, beta_b, binf) -> None:

@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
-from pipeline import losses as L
+from pipeline.medium import losses as L
 from pipeline.medium.model import Medium
 
 torch.set_default_dtype(torch.float32)

@@ -6,9 +6,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.losses import LossWeights, total_loss
 from pipeline.medium.attenuation import rgb_guided_attenuation
 from pipeline.medium.formation import classical_formation
+from pipeline.medium.losses import LossWeights, total_loss
 from pipeline.medium.model import Medium
 from pipeline.medium.scattering import depth_confidence, depth_edge_factor, multiscale_backscatter
 

@@ -30,7 +30,7 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 ERRORS = {s: {"model": ErrorOut} for s in (400, 401, 404, 409, 413, 415, 422, 503, 507)}
 
-# HTTP status of each ingest refusal code (pipeline.archive / pipeline.ingest); anything else is 422.
+# HTTP status of each ingest refusal code (pipeline.ingest.archive / pipeline.ingest.intake); anything else is 422.
 REFUSAL_STATUS = {"not_an_archive": 415, "too_large": 413, "file_too_large": 413, "too_many_entries": 413,
                   "compression_bomb": 413}
 
@@ -165,12 +165,13 @@ def _same_request(first: Manifest, sha256: str, options: dict) -> bool:
 def _run_ingest(settings: Settings, job_dir: Path, archive: Path, opts: dict) -> tuple[dict, float]:
     """The pipeline's ingest stage with this deployment's archive limits; its marker makes the worker skip it.
 
-    (``pipeline.job.run_stage`` would use the default limits; see docs/SERVICE.md.) Refusals become UploadError.
+    (``pipeline.job.runner.run_stage`` would use the default limits; see docs/SERVICE.md.) Refusals become UploadError.
     """
-    from pipeline.archive import ArchiveError
-    from pipeline.ingest import IngestConfig, IngestError, ingest
-    from pipeline.job import JobOptions, stage_config
-    from pipeline.stages import run_marked
+    from pipeline.ingest.archive import ArchiveError
+    from pipeline.ingest.intake import IngestConfig, IngestError, ingest
+    from pipeline.job.markers import run_marked
+    from pipeline.job.options import JobOptions
+    from pipeline.job.runner import stage_config
 
     t0 = time.time()
     cfg = IngestConfig(min_images=settings.min_images, limits=settings.archive_limits())

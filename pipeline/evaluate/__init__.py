@@ -1,0 +1,1 @@
+"""How good and how fast: metrics, LPIPS, the evaluate stage, the report, re-rendering a job."""

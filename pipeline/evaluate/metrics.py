@@ -1,0 +1,82 @@
+"""Evaluation metrics as pure functions (numpy in, floats out).
+
+- PSNR over a set of views is computed from the *pooled* MSE (all pixels of all views), not averaged per view.
+- SSIM uses an 11×11 Gaussian window with σ = 1.5 (Wang et al. 2004, the 3DGS convention).
+- Depth error is measured after a least-squares scale alignment (SfM depth has no metric scale).
+- Water coefficients are compared per channel, absolute and relative.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from pipeline.train.image_losses import psnr_from_mse
+from pipeline.train.image_losses import ssim as _ssim
+
+
+def pooled_mse(pairs: Sequence[tuple[np.ndarray, np.ndarray]], masks: Sequence[np.ndarray] | None = None) -> float:
+    """Mean squared error over every pixel of every (prediction, target) pair, each [H, W, 3] in [0, 1]; with
+    ``masks`` ([H, W] bool per pair) only over the pixels they keep (NaN when they keep none)."""
+    if not pairs:
+        raise ValueError("no image pairs to score")
+    if masks is not None and len(masks) != len(pairs):
+        raise ValueError(f"{len(masks)} masks for {len(pairs)} image pairs")
+    se, n = 0.0, 0
+    for k, (pred, gt) in enumerate(pairs):
+        if pred.shape != gt.shape:
+            raise ValueError(f"prediction {pred.shape} and target {gt.shape} differ")
+        d = np.asarray(pred, np.float64) - np.asarray(gt, np.float64)
+        if masks is not None:
+            if masks[k].shape != d.shape[:2]:
+                raise ValueError(f"mask {masks[k].shape} does not fit image {d.shape}")
+            d = d[masks[k]]
+        se += float((d * d).sum())
+        n += d.size
+    return se / n if n else math.nan
+
+
+psnr = psnr_from_mse  # PSNR in dB for images in [0, 1] (inf for a perfect match)
+
+
+def pooled_psnr(pairs: Sequence[tuple[np.ndarray, np.ndarray]], masks: Sequence[np.ndarray] | None = None) -> float:
+    """PSNR of the pooled MSE (over the masked pixels when ``masks`` are given; NaN when none are kept)."""
+    mse = pooled_mse(pairs, masks)
+    return math.nan if math.isnan(mse) else psnr(mse)
+
+
+def mean_ssim(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> float:
+    """SSIM (11×11 Gaussian window, σ 1.5) averaged over views."""
+    vals = [float(_ssim(torch.as_tensor(p, dtype=torch.float32), torch.as_tensor(g, dtype=torch.float32)))
+            for p, g in pairs]
+    return float(np.mean(vals))
+
+
+def scale_aligned_depth_error(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray],
+                              masks: Sequence[np.ndarray] | None = None) -> dict[str, float]:
+    """Depth error after one least-squares scale s minimising Σ(s·pred − gt)² over all valid pixels.
+
+    Returns the scale, mean absolute error (gt units) and mean relative error |s·pred − gt| / gt.
+    """
+    p = np.concatenate([np.asarray(x, np.float64).ravel() for x in pred])
+    g = np.concatenate([np.asarray(x, np.float64).ravel() for x in gt])
+    valid = np.isfinite(p) & np.isfinite(g) & (g > 0) & (p > 0)
+    if masks is not None:
+        valid &= np.concatenate([np.asarray(m, bool).ravel() for m in masks])
+    if not valid.any():
+        raise ValueError("no valid depth pixels to compare")
+    p, g = p[valid], g[valid]
+    s = float((p * g).sum() / (p * p).sum())
+    err = np.abs(s * p - g)
+    return {"scale": s, "abs_error": float(err.mean()), "rel_error": float((err / g).mean()),
+            "n_pixels": int(valid.sum())}
+
+
+def coefficient_error(estimated: Sequence[float], true: Sequence[float]) -> dict[str, list[float]]:
+    """Per-channel absolute and relative error of a water coefficient (β_D, β_B or B∞)."""
+    e, t = np.asarray(estimated, np.float64), np.asarray(true, np.float64)
+    return {"estimated": e.tolist(), "true": t.tolist(), "abs_error": np.abs(e - t).tolist(),
+            "rel_error": (np.abs(e - t) / np.maximum(np.abs(t), 1e-9)).tolist()}

@@ -1,0 +1,261 @@
+"""The job's report: ``report.json`` (schema ``pipeline/data/report.schema.json``, documented in docs/REPORT.md)
+and a self-contained ``report.html`` (every picture embedded as a ``data:`` URI), both in ``job/output/``.
+
+Built at the end of the export stage from what the stages wrote: ``job.json`` (options), ``water.json``
+(classify), ``train/train.json`` and ``train/selection.json`` (train; the latter only with ``--mode auto``),
+``evaluate.json`` and ``evaluate/`` (evaluate) and ``output/`` (export's images).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.evaluate.evaluation import TRUE_CAMERA_DIR, json_safe, scaled_view, stage_timings
+from pipeline.job.markers import atomic_write_json, atomic_write_text
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+SCHEMA_FILE = Path(__file__).resolve().parents[1] / "data" / "report.schema.json"
+CURVE_PNG = "speed_vs_error.png"
+MAX_VIEWS_SHOWN = 6  # held-out views pictured in the HTML (all are scored)
+OUTPUT_FOLDERS = ("restored", "with_water", "attenuation", "backscatter", "depth")
+
+
+def _read_json(path: Path) -> Any:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def selection_of(job: Path, options: dict, mode: str) -> dict[str, Any]:
+    """What mode was chosen and why: ``train/selection.json`` (written by ``--mode auto``: ``requested``,
+    ``chosen``, ``reason``, the probe's numbers) when present, with ``mode`` = the chosen mode; else the mode
+    the user asked for."""
+    sel = _read_json(job / "train" / "selection.json")
+    if isinstance(sel, dict) and ("chosen" in sel or "mode" in sel):
+        return {"reason": "chosen automatically", **sel, "mode": sel.get("chosen", sel.get("mode"))}
+    return {"mode": mode, "requested": options.get("mode", mode), "reason": "requested by the user"}
+
+
+def water_coefficients(medium: dict | None, metres_per_unit: float | None) -> dict[str, Any] | None:
+    """Each learned water coefficient with the sparse-point measurement it was held to and that measurement's
+    uncertainty (σ of its log, or logit for B∞) and source: ``measured`` (the data pinned it), ``prior`` (the
+    data could not: the classified water type's value), ``measured+prior``; or the fallback when the points
+    could not measure the water at all. None without a medium."""
+    if not medium or "beta_D" not in medium:
+        return None
+    est = medium.get("estimate")
+    unc = (est or {}).get("uncertainty") or {}
+    per_m = 1.0 / metres_per_unit if metres_per_unit else None
+    out: dict[str, Any] = {}
+    for k in ("beta_D", "beta_B", "B_inf"):
+        metric = per_m is not None and k != "B_inf"
+        entry: dict[str, Any] = {
+            "learned": medium[k], "units": "1/scene-unit" if k != "B_inf" else "linear intensity",
+            "measured": est.get(k) if est else None,
+            "sigma": unc.get(k, {}).get("sigma"), "data_sigma": unc.get(k, {}).get("data_sigma"),
+            "source": unc.get(k, {}).get("source") or (
+                None if est else ["not measured (too few points seen twice): grey-world prior"] * 3),
+            "sigma_scale": (unc.get("scale") or {}).get(k)}
+        if metric:
+            entry["learned_per_metre"] = [b * per_m for b in medium[k]]
+        out[k] = entry
+    out["prior"] = unc.get("prior")
+    return out
+
+
+def quality_of(train: dict) -> dict[str, Any] | None:
+    """Did the model keep its scene (``pipeline.train.quality``, measured by the train stage), and was it recovered
+    from a collapse (``pipeline.train.guard``)? None for jobs trained before the check existed."""
+    q = train.get("quality")
+    if not isinstance(q, dict):
+        return None
+    return {**q, "recovery": train.get("recovery")}
+
+
+def build_report(job: str | Path, export_s: float | None = None) -> dict[str, Any]:
+    """The report.json content of a job whose evaluate stage has run (``export_s``: the export stage's seconds
+    so far, as its marker is not written yet)."""
+    from pipeline.job.table import STAGES
+
+    job = Path(job)
+    ev = _read_json(job / "evaluate.json")
+    if ev is None:
+        raise FileNotFoundError(f"{job / 'evaluate.json'} is missing: run the evaluate stage first")
+    options = _read_json(job / "job.json") or {}
+    stages = stage_timings(job, [s for s in STAGES if s != "export"])
+    stages["export"] = export_s
+    timings = {k: v for k, v in ev["timings"].items() if k != "stages_s"}
+    timings.update(stages_s=stages, total_s=sum(v for v in stages.values() if v is not None))
+    restoration = ev.get("restoration")
+    scale = restoration["metres_per_unit"] if restoration else options.get("metric_scale")
+    model = {**ev["model"], "metres_per_unit": scale}
+    medium = model.get("medium")
+    if medium and scale:
+        model["medium_per_metre"] = {"beta_D": [b / scale for b in medium["beta_D"]],
+                                     "beta_B": [b / scale for b in medium["beta_B"]], "B_inf": medium["B_inf"],
+                                     "units": "1/m (B_inf: linear intensity)"}
+    model["water_coefficients"] = water_coefficients(medium, scale)
+    out = job / "output"
+    train = _read_json(job / "train" / "train.json") or {}
+    report = {
+        "schema_version": SCHEMA_VERSION,
+        "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
+        "job": {"name": job.resolve().name, "options": options},
+        "water": _read_json(job / "water.json"),
+        "mode": ev["mode"],
+        "preset": options.get("preset", ""),
+        "selection": selection_of(job, options, ev["mode"]),
+        "quality": quality_of(train),
+        "metrics": ev["metrics"],
+        "restoration": restoration,
+        "timings": timings,
+        "speed_vs_error": {**ev["speed_vs_error"], "plot": CURVE_PNG if ev["speed_vs_error"]["points"] else None},
+        "model": model,
+        "config": ev.get("config", {}),
+        "outputs": {f: sum(1 for p in (out / f).glob("*.png")) for f in OUTPUT_FOLDERS if (out / f).is_dir()},
+        "input": input_summary(job, options),
+        "sfm": sfm_summary(job),
+    }
+    return json_safe(relative_paths(report, job))
+
+
+SFM_FIELDS = ("registered", "total", "mean_reproj_error_px", "num_points3D", "matcher")
+
+
+def input_summary(job: Path, options: dict) -> dict[str, Any]:
+    """What went in: the input's name (``source.json``'s ``name`` when the service wrote one, e.g. the uploaded
+    file's name; else the source's own name), the images ingest kept and the files it skipped."""
+    ingested = _read_json(job / "ingest.json") or {}
+    named = _read_json(job / "source.json") or {}
+    name = named.get("name") or Path(str(options.get("source", "") or ingested.get("source", ""))).name
+    return {"name": name or None, "images": len(ingested.get("images", [])) if ingested else None,
+            "skipped": len(ingested.get("skipped", [])) if ingested else None}
+
+
+def sfm_summary(job: Path) -> dict[str, Any] | None:
+    """The SfM stage's summary from its completion marker: registered / total images, mean reprojection error,
+    points, matcher (None when the stage has not run)."""
+    from pipeline.job.markers import read_marker
+
+    marker = read_marker(job, "sfm")
+    result = (marker or {}).get("result") or {}
+    return {k: result.get(k) for k in SFM_FIELDS} if result else None
+
+
+def relative_paths(value: Any, job: Path) -> Any:
+    """``value`` with every absolute path string made relative to the job folder (or cut to its own name when it
+    lies outside, e.g. ``dualphys run``'s input): the report travels to the service's clients, who must never
+    see the server's file system."""
+    if isinstance(value, dict):
+        return {k: relative_paths(v, job) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [relative_paths(v, job) for v in value]
+    if isinstance(value, str) and value.startswith("/") and "\n" not in value:
+        path, base = Path(value), job.resolve()
+        try:
+            return path.resolve().relative_to(base).as_posix()
+        except (ValueError, OSError):
+            return path.name
+    return value
+
+
+def validate_report(report: dict) -> None:
+    """Raise ``jsonschema.ValidationError`` when ``report`` does not follow the schema (jsonschema is a dev
+    dependency: the pipeline itself never needs it)."""
+    import jsonschema
+
+    jsonschema.validate(report, json.loads(SCHEMA_FILE.read_text()))
+
+
+@dataclass
+class Pictures:
+    """The HTML's embedded pictures as PNG bytes."""
+
+    views: list[tuple[str, list[tuple[str, bytes]]]]  # per held-out view: (name, [(label, png)])
+    maps: list[tuple[str, list[tuple[str, bytes]]]]  # per held-out view: A, B, depth
+    curve: bytes | None
+
+
+def collect_pictures(job: Path, report: dict) -> Pictures:
+    """Side-by-side with-water / restored / ground truth per held-out view and its A / B / depth maps."""
+    from pipeline.evaluate.plots import image_png, speed_vs_error_png
+    from pipeline.scene.images import read_image
+    from pipeline.scene.loader import load_scene, load_view_image
+    from pipeline.scene.split import split_views
+    from pipeline.synth.ground_truth import load_ground_truth
+
+    out = job / "output"
+    names = report["metrics"]["test"]["views"][:MAX_VIEWS_SHOWN]
+    down = int(report["model"].get("downscale", 1))
+    rest = report["restoration"]
+    views = []
+    restored = report["mode"] != "3dgs"  # 3dgs models no water: its "restored" image is the model, not a restoration
+    if rest is not None:  # the true cameras: photo, model, restored and truth share one geometry
+        # the report names the ground truth without its server path; evaluate.json has the real one
+        gt = load_ground_truth(((_read_json(job / "evaluate.json") or {}).get("restoration") or {}).get(
+            "ground_truth", rest["ground_truth"]))
+        true_views = {v.name: scaled_view(v, down) for v in gt.scene.views}
+        for n in (n for n in names if n in rest["views"]):
+            v, stem = true_views[n], Path(n).stem
+            photo = load_view_image(type(v)(v.name, v.camera, v.R, v.t, gt.root / "images" / n))
+            cells = [("photo", image_png(photo)),
+                     ("model, with water", (job / TRUE_CAMERA_DIR / "with_water" / f"{stem}.png").read_bytes()),
+                     ("restored J", (job / TRUE_CAMERA_DIR / "restored" / f"{stem}.png").read_bytes()),
+                     ("ground truth J", image_png(gt.clean(v)))]
+            cells = [c for c in cells if restored or c[0] != "restored J"]
+            views.append((n, cells))
+    else:
+        _, test = split_views(load_scene(job / "scene").views)
+        by_name = {v.name: scaled_view(v, down) for v in test}
+        for n in (n for n in names if n in by_name):
+            stem = Path(n).stem
+            views.append((n, [("photo", image_png(load_view_image(by_name[n]))),
+                              ("model, with water", (out / "with_water" / f"{stem}.png").read_bytes())]
+                          + ([("restored J", (out / "restored" / f"{stem}.png").read_bytes())] if restored else [])))
+    maps = []
+    depths = {n: np.load(out / "depth" / f"{Path(n).stem}.npy") for n in names
+              if (out / "depth" / f"{Path(n).stem}.npy").is_file()}
+    zmax = max((float(d.max()) for d in depths.values()), default=1.0) or 1.0
+    for n in names:
+        stem, cells = Path(n).stem, []
+        for folder, label in (("attenuation", "attenuation A"), ("backscatter", "backscatter B")):
+            if (out / folder / f"{stem}.png").is_file():
+                cells.append((label, image_png(read_image(out / folder / f"{stem}.png"))))
+        if n in depths:
+            cells.append((f"depth (0-{zmax:.3g} scene units)", image_png(depths[n], "viridis", 0.0, zmax)))
+        if cells:
+            maps.append((n, cells))
+    points = report["speed_vs_error"]["points"]
+    curve = speed_vs_error_png(points) if points else None
+    return Pictures(views, maps, curve)
+
+
+def write_report(job: str | Path, out: str | Path | None = None, export_s: float | None = None) -> list[Path]:
+    """Write report.json, report.html and the curve's PNG into ``out`` (default ``job/output``); returns the
+    paths written."""
+    from pipeline.evaluate.report_html import render_html
+
+    t0 = time.perf_counter()
+    job = Path(job)
+    out = Path(out) if out is not None else job / "output"
+    out.mkdir(parents=True, exist_ok=True)
+    report = build_report(job, export_s)
+    pictures = collect_pictures(job, report)
+    written = [atomic_write_json(out / "report.json", report)]
+    if pictures.curve is not None:
+        (out / CURVE_PNG).write_bytes(pictures.curve)
+        written.append(out / CURVE_PNG)
+    written.append(atomic_write_text(out / "report.html", render_html(report, pictures)))
+    log.info("report written to %s (%.1f s)", out / "report.html", time.perf_counter() - t0)
+    return written
+
+
+__all__ = ["SCHEMA_FILE", "SCHEMA_VERSION", "build_report", "selection_of", "validate_report", "write_report"]

@@ -1,0 +1,276 @@
+"""report.html: one self-contained page (inline CSS, pictures as ``data:`` URIs, no script, no network) that
+a scientist reads top to bottom: headline numbers, how the mode was chosen, held-out scores, restoration
+against ground truth, the pictures, the speed-vs-error curve, the water decision, timings and the config.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+from html import escape
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from pipeline.evaluate.report import Pictures
+
+_CSS = """
+body{font:14px/1.45 system-ui,sans-serif;margin:24px auto;max-width:1150px;color:#1b2730;background:#fff}
+h1{font-size:22px;margin:0 0 4px}h2{font-size:17px;margin:28px 0 8px;border-bottom:1px solid #cfd8dc}
+table{border-collapse:collapse;margin:6px 0}td,th{border:1px solid #cfd8dc;padding:3px 8px;text-align:right}
+th{background:#eef3f5}td.l,th.l{text-align:left}.muted{color:#5f7480}
+.warn{color:#8a1c12}.box{border:2px solid #c0392b;background:#fdf0ee;border-radius:6px;padding:8px 12px;margin:10px 0}
+.ok{border:1px solid #cfd8dc;border-radius:6px;padding:8px 12px;margin:10px 0}
+.head{display:flex;flex-wrap:wrap;gap:10px;margin:12px 0}
+.kpi{border:1px solid #cfd8dc;border-radius:6px;padding:8px 12px;min-width:130px}
+.kpi b{display:block;font-size:19px}
+.row{display:flex;gap:8px;margin:6px 0 14px;flex-wrap:wrap}
+figure{margin:0;flex:1 1 0;min-width:150px;max-width:300px}
+figure img{width:100%;image-rendering:pixelated;display:block}
+figcaption{font-size:12px;color:#5f7480}pre{background:#f5f8f9;padding:10px;overflow:auto;font-size:12px}
+"""
+
+
+def data_uri(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+
+
+def fmt(x: Any, digits: int = 2) -> str:
+    if x is None:
+        return "—"
+    if isinstance(x, float):
+        return f"{x:.{digits}f}"
+    return escape(str(x))
+
+
+def table(header: list[str], rows: list[list[Any]], digits: int = 2) -> str:
+    head = "".join(f'<th class="{"l" if i == 0 else ""}">{escape(h)}</th>' for i, h in enumerate(header))
+    body = "".join("<tr>" + "".join(f'<td class="{"l" if i == 0 else ""}">{fmt(c, digits)}</td>'
+                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _figures(cells: list[tuple[str, bytes]]) -> str:
+    return '<div class="row">' + "".join(
+        f'<figure><img src="{data_uri(png)}" alt="{escape(label)}"><figcaption>{escape(label)}</figcaption></figure>'
+        for label, png in cells) + "</div>"
+
+
+def no_water_removed(r: dict) -> bool:
+    """Mode ``3dgs`` models no water: nothing was removed, whatever ``restored/`` holds (the model itself)."""
+    return r["mode"] == "3dgs"
+
+
+def _kpis(r: dict) -> str:
+    t, rest = r["metrics"]["test"], r["restoration"]
+    water = r["water"]["water_type"] if r["water"] else None
+    items = [("mode", r["mode"]), ("preset", r["preset"]), ("water", water),
+             (f"held-out PSNR ({t['n_views']} views)", f"{fmt(t['psnr'])} dB"), ("held-out SSIM", fmt(t["ssim"], 3)),
+             ("LPIPS", fmt(t["lpips"], 3))]
+    if rest is not None and not no_water_removed(r):
+        items.append(("restored J PSNR vs truth", f"{fmt(rest['restored']['psnr'])} dB"))
+    items += [("Gaussians", r["model"]["n_gaussians"]), ("total time", f"{fmt(r['timings']['total_s'], 0)} s")]
+    return '<div class="head">' + "".join(f'<div class="kpi"><span class="muted">{escape(k)}</span>'
+                                          f"<b>{fmt(v) if not isinstance(v, str) else escape(v)}</b></div>"
+                                          for k, v in items) + "</div>"
+
+
+def _inputs(r: dict) -> str:
+    """The input's name and image count, and the SfM summary (registered / total, reprojection error, matcher)."""
+    inp, sfm = r.get("input") or {}, r.get("sfm")
+    skipped = f", {inp['skipped']} undecodable file(s) skipped" if inp.get("skipped") else ""
+    html = (f"<h2>Input and camera poses</h2><p>Input <b>{fmt(inp.get('name'))}</b>: {fmt(inp.get('images'))} "
+            f"images{skipped}.</p>")
+    if not sfm:
+        return html + "<p class=muted>No SfM summary (the sfm stage has not run).</p>"
+    return html + (f"<p>SfM registered <b>{fmt(sfm['registered'])} of {fmt(sfm['total'])}</b> images, mean "
+                   f"reprojection error {fmt(sfm['mean_reproj_error_px'], 3)} px, {fmt(sfm['num_points3D'])} "
+                   f"points, {fmt(sfm['matcher'])} matching.</p>")
+
+
+def _selection(r: dict) -> str:
+    """The mode decision with the water-type decision beside it, and what the mode means for restoration."""
+    sel, w = r["selection"], r["water"]
+    water = (f"Water classified <b>{escape(w['water_type'])}</b>"
+             + (f" (p = {w['probabilities'][w['water_type']]:.2f})" if w.get("probabilities", {}).get(
+                 w["water_type"]) is not None else "") + "." if w else "Water type not classified.")
+    html = f"<h2>Model selection</h2><p>Mode <b>{escape(sel['mode'])}</b>: {escape(sel['reason'])}. {water}</p>"
+    if no_water_removed(r):
+        html += ("<p><b>No water was removed.</b> Mode 3dgs fits the photos as they are, with no model of the "
+                 "water, so there is no restored image J; the views below show the model with the water in them"
+                 + (f" (the mode was chosen because: {escape(sel['reason'])})" if sel.get("reason") else "")
+                 + ".</p>")
+    return html
+
+
+def _restoration(rest: dict | None, r: dict | None = None) -> str:
+    if rest is not None and r is not None and no_water_removed(r):
+        rows = [[label, rest[k]["psnr"], rest[k]["ssim"], rest[k]["lpips"]] for label, k in (
+            ("photo vs true clean J", "input"), ("model with water vs photo (alignment check)", "with_water"))]
+        return ("<h2>Restoration against ground truth</h2><p>No water was removed (mode 3dgs), so there is no "
+                "restored J to score; the photos themselves against the true clean images:</p>"
+                + table(["comparison", "PSNR (dB)", "SSIM", "LPIPS"], rows, 3))
+    if rest is None:
+        return "<h2>Restoration</h2><p class=muted>No ground truth for this job (only generated scenes have it).</p>"
+    rows = [[label, rest[k]["psnr"], rest[k]["ssim"], rest[k]["lpips"]] for label, k in (
+        ("restored J vs true clean J", "restored"), ("photo vs true clean J (no restoration)", "input"),
+        ("model with water vs photo (alignment check)", "with_water"))]
+    html = ("<h2>Restoration against ground truth</h2>"
+            f"<p class=muted>{escape(rest['rendered_from'])}; {len(rest['views'])} held-out views; ground truth "
+            f"{escape(rest['ground_truth'])} (water preset {fmt(rest.get('water_preset'))}); one scene unit = "
+            f"{fmt(rest['metres_per_unit'], 4)} m by aligning the cameras to the true ones (rotation error "
+            f"{fmt(rest['alignment']['rot_err_deg_mean'], 3)}°).</p>"
+            + table(["comparison", "PSNR (dB)", "SSIM", "LPIPS"], rows, 3))
+    if rest.get("per_view"):
+        html += table(["held-out view", "restored J PSNR (dB)", "photo PSNR (dB)", "gain (dB)"],
+                      [[p["name"], p["restored_psnr"], p["input_psnr"],
+                        None if p["restored_psnr"] is None or p["input_psnr"] is None
+                        else p["restored_psnr"] - p["input_psnr"]] for p in rest["per_view"]])
+    seen = rest.get("seen")
+    if seen is not None:
+        html += (f"<p>Over the pixels some training view saw ({fmt(100 * seen['fraction'], 0)} % of them; "
+                 f"{escape(seen['rule'])}): restored J {fmt(seen['restored_psnr'])} dB, the photo "
+                 f"{fmt(seen['input_psnr'])} dB. Seabed no training view saw can only be invented, not "
+                 f"restored.</p>")
+    coef = rest["coefficients"]
+    if coef is not None:
+        crow = []
+        for k in ("beta_D", "beta_B", "B_inf"):
+            c = coef[k]
+            crow += [[f"{k} {ch} ({coef['units'][k]})", c["estimated"][i], c["true"][i], c["rel_error"][i]]
+                     for i, ch in enumerate("RGB")]
+        html += table(["coefficient", "recovered", "true", "relative error"], crow, 3)
+    else:
+        html += "<p class=muted>No medium in this mode: no water coefficients recovered.</p>"
+    d = rest["depth"]
+    if d.get("scale_aligned") is None:
+        return html + f"<p class=warn>Depth error: {escape(d.get('reason') or 'not measured')}.</p>"
+    html += table(["depth error (held-out views)", "mean abs", "mean relative", "pixels"], [
+        [f"least-squares scale ({fmt(d['scale_aligned']['scale'], 4)} m/unit)", d["scale_aligned"]["abs_error"],
+         d["scale_aligned"]["rel_error"], d["scale_aligned"]["n_pixels"]],
+        ["at the camera alignment's scale", d["at_alignment_scale"]["abs_error_m"],
+         d["at_alignment_scale"]["rel_error"], d["at_alignment_scale"]["n_pixels"]]], 3)
+    return html
+
+
+def _curve_vs_header(r: dict) -> str:
+    """Say how the curve's last point relates to the header's held-out PSNR: the same number, or two scores
+    of two view sets / renders, each named."""
+    pts, t = r["speed_vs_error"]["points"], r["metrics"]["test"]
+    if not pts or t["psnr"] is None:
+        return ""
+    last = pts[-1]
+    same_views = sorted(r["speed_vs_error"]["views"]) == sorted(t["views"])
+    if same_views and abs(last["psnr"] - t["psnr"]) < 0.005:
+        return f" Its last point ({fmt(last['psnr'])} dB) is the header's held-out PSNR."
+    return (f" Its last point (iteration {last['iteration']}: {fmt(last['psnr'])} dB, training's check on "
+            f"{len(r['speed_vs_error']['views'])} views: {escape(', '.join(r['speed_vs_error']['views']))}) is "
+            f"not the header's held-out PSNR ({fmt(t['psnr'])} dB, the evaluate stage on {t['n_views']} views: "
+            f"{escape(', '.join(t['views']))}).")
+
+
+def _water(w: dict | None) -> str:
+    if not w:
+        return "<h2>Water type</h2><p class=muted>Not classified.</p>"
+    probs = ", ".join(f"{escape(k)} {v:.2f}" for k, v in w.get("probabilities", {}).items())
+    rest = [[k, json.dumps(v)] for k, v in w.items() if k not in ("water_type", "probabilities")]
+    return (f"<h2>Water type</h2><p>Classified <b>{escape(w['water_type'])}</b> (probabilities {probs}).</p>"
+            + table(["decision field", "value"], rest))
+
+
+def _timings(t: dict) -> str:
+    rows = [[f"stage {k}", v] for k, v in t["stages_s"].items()] + [["total", t["total_s"]]]
+    r = t["render_ms_per_view"]
+    rows += [["training iterations / s", t["train_iterations_per_s"]],
+             ["training seconds (steps only)", t.get("train_elapsed_s")],
+             [f"render ms per view ({r.get('width')}x{r.get('height')}, median of {r['n']})", r["median"]]]
+    return "<h2>Timings</h2>" + table(["what", "seconds / rate"], rows, 2)
+
+
+def _coefficients(w: dict | None) -> str:
+    """The water coefficients the model learned, the sparse-point measurement and its uncertainty."""
+    if not w:
+        return ""
+    rows = []
+    for k in ("beta_D", "beta_B", "B_inf"):
+        c = w[k]
+        for i, ch in enumerate("RGB"):
+            sig = (c.get("sigma") or [None] * 3)[i]
+            if sig is None:
+                spread = "not determined" if c.get("measured") else None
+            elif c.get("sigma_scale") == "log":
+                spread = f"×/÷ {min(math.exp(sig), 999.0):.2f}"
+            else:
+                spread = f"± {sig:.2f} (logit)"
+            rows.append([f"{k} {ch} ({c['units']})", c["learned"][i], (c.get("measured") or [None] * 3)[i],
+                         spread, (c.get("source") or [None] * 3)[i]])
+    prior = w.get("prior")
+    note = ("" if not prior else f" Prior where the points cannot pin a coefficient: the classified water type's "
+            f"optical depth {', '.join(f'{x:g}' for x in prior['optical_depth'])} (R, G, B) at the sightings' "
+            f"median range {prior['median_range']:.3g}, a factor of {math.exp(prior['sigma_log'] or 0):.1f} "
+            "either way.")
+    return ("<h2>Water coefficients</h2><p class=muted>Learned by the medium; measured from the sparse points "
+            "before training (what the training held the medium to), with that measurement's uncertainty (one σ) "
+            "and what determined it." + escape(note) + "</p>"
+            + table(["coefficient", "learned", "measured", "uncertainty", "source"], rows, 3))
+
+
+def _quality(q: dict | None) -> str:
+    """The model-quality block at the top: did the Gaussians keep the scene in every training view."""
+    if not q:
+        return "<div class=ok><b>Model quality</b>: not measured (job trained before the check existed).</div>"
+    pc = q.get("point_coverage_min")
+    line = (f"{q['n_gaussians']:,} Gaussians (budget {q['budget']:,}); training views covered (alpha ≥ 0.5): "
+            f"at least {100 * q['coverage_min']:.1f}% of pixels"
+            + (f", {100 * pc:.1f}% of their sparse points" if pc is not None else "")
+            + (f" ({100 * q['point_depth_min']:.0f}% or more of them at the points' distance)"
+               if q.get("point_depth_min") is not None else "")
+            + (f"; water share of the predicted light {100 * q['water_share_mean']:.0f}%"
+               if q.get("water_share_mean") is not None else ""))
+    warn = "".join(f"<li>{escape(w)}</li>" for w in q.get("warnings", []))
+    cls = "box" if warn else "ok"
+    rows = [[p["name"], p["coverage"], p["point_coverage"], p.get("point_depth"), p.get("uncovered_detail"),
+             p["water_share"]] for p in q.get("per_view", [])]
+    return (f"<div class={cls}><b>Model quality</b>: {escape(line)}."
+            + (f"<ul class=warn>{warn}</ul>" if warn else " No warnings.") + "</div>"
+            + "<details><summary>coverage per training view</summary>"
+            + table(["view", "pixels covered", "sparse points covered", "points at their distance",
+                     "uncovered with detail", "water share"], rows, 3) + "</details>")
+
+
+def render_html(r: dict, pics: Pictures) -> str:
+    """The page for report ``r`` with ``pics`` embedded."""
+    t = r["metrics"]["test"]
+    parts = [f"<h1>dualphys report: {escape(r['job']['name'])}</h1>",
+             f"<p class=muted>created {escape(r['created_at'])}; report schema {r['schema_version']}</p>",
+             _quality(r.get("quality")),
+             _kpis(r), _inputs(r), _selection(r),
+             "<h2>Held-out views</h2>"
+             f"<p class=muted>{t['n_views']} views (every 8th by name), {escape(t['compared'])}; PSNR of the pooled "
+             f"MSE, SSIM with an 11x11 Gaussian window. LPIPS: {escape(t['lpips_reason'] or 'LPIPS-VGG')}.</p>",
+             table(["view", "PSNR (dB)", "SSIM", "render ms"],
+                   [[p["name"], p["psnr"], p["ssim"], p["render_ms"]] for p in t["per_view"]], 3),
+             _restoration(r["restoration"], r),
+             "<h2>Held-out views: photo, model" + ("" if no_water_removed(r) else ", restored")
+             + (", ground truth" if r["restoration"] else "") + "</h2>"]
+    parts += [f"<p class=muted>{escape(name)}</p>" + _figures(cells) for name, cells in pics.views]
+    parts.append("<h2>Water maps: attenuation, backscatter, depth</h2>")
+    parts += [f"<p class=muted>{escape(name)}</p>" + _figures(cells) for name, cells in pics.maps] or [
+        "<p class=muted>No maps.</p>"]
+    sve = r["speed_vs_error"]
+    parts.append("<h2>Speed against error</h2>")
+    if pics.curve is not None:
+        parts.append(f'<img src="{data_uri(pics.curve)}" alt="speed against error" style="max-width:640px">')
+    parts.append(f"<p class=muted>{escape(sve['metric'])} on {len(sve['views'])} held-out views against "
+                 f"{escape(sve.get('time', 'training seconds'))}.{_curve_vs_header(r)}</p>"
+                 + table(["iteration", "seconds", "PSNR (dB)"],
+                         [[p["iteration"], p["elapsed_s"], p["psnr"]] for p in sve["points"]]))
+    parts += [_water(r["water"]), _coefficients(r["model"].get("water_coefficients")), _timings(r["timings"]),
+              "<h2>Config</h2><pre>" + escape(json.dumps({"job options": r["job"]["options"],
+                                                          "training": r["config"]}, indent=2)) + "</pre>"]
+    return ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>dualphys report "
+            f"{escape(r['job']['name'])}</title><style>{_CSS}</style></head><body>" + "\n".join(parts)
+            + "</body></html>\n")
+
+
+__all__ = ["data_uri", "render_html"]

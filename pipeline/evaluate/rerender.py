@@ -1,0 +1,104 @@
+"""Render a trained job again (``dualphys render``): its own cameras, a chosen few, or novel cameras on a smooth
+path through them. The rendering itself is :func:`pipeline.train.model.export_views` (the export stage's)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.job.layout import EXPORT_FOLDERS
+from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
+from pipeline.scene.types import View
+
+log = logging.getLogger(__name__)
+
+
+class RenderError(ValueError):
+    """The job cannot be rendered as asked (not trained yet, unknown view name, bad folder name)."""
+
+
+def training_views(job: Path, state: dict) -> list[View]:
+    """The job's cameras at the resolution its model was trained at."""
+    from pipeline.scene.loader import load_scene
+
+    down = int(state["config"].get("downscale", 1))
+    return [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
+            for v in load_scene(job / "scene").views]
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
+    """Spherical interpolation of unit quaternions (w first), along the shorter arc."""
+    d = float(np.dot(q0, q1))
+    if d < 0:
+        q1, d = -q1, -d
+    if d > 0.9995:  # nearly equal: linear is exact enough and avoids dividing by sin(0)
+        q = q0 + s * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(d)
+    return (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
+
+
+def path_views(views: Sequence[View], n: int) -> list[View]:
+    """``n`` novel cameras evenly spaced (by distance travelled) along the path through ``views`` in name order:
+    centres interpolated linearly, orientations by slerp, the intrinsics of the first view. Named
+    ``novel_0000.png`` ..."""
+    if n < 1:
+        raise RenderError(f"the number of novel views must be at least 1, got {n}")
+    ordered = sorted(views, key=lambda v: v.name)
+    if len(ordered) < 2:
+        raise RenderError("novel views need at least two cameras to interpolate between")
+    centres = np.stack([v.center for v in ordered])  # [V, 3]
+    quats = [rotmat_to_qvec(v.R.T) for v in ordered]  # world_from_cam orientations
+    seg = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(seg)])  # [V]
+    if along[-1] <= 0:
+        along = np.arange(len(ordered), dtype=np.float64)  # all cameras in one place: step by index
+    out = []
+    for k, a in enumerate(np.linspace(0.0, along[-1], n)):
+        i = int(np.clip(np.searchsorted(along, a, side="right") - 1, 0, len(ordered) - 2))
+        s = float((a - along[i]) / max(along[i + 1] - along[i], 1e-12))
+        c = (1 - s) * centres[i] + s * centres[i + 1]
+        R = qvec_to_rotmat(_slerp(quats[i], quats[i + 1], s)).T  # back to cam_from_world
+        out.append(View(f"novel_{k:04d}.png", ordered[0].camera, R, -R @ c))
+    return out
+
+
+def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "all",
+               what: Sequence[str] = ("restored", "with_water"), novel: int = 0, backend: str = "auto") -> dict:
+    """Render the trained model of ``job`` into ``out/<what>/``: the job's views (``"all"`` or names, with or
+    without the extension) and ``novel`` cameras on a path through them. Returns counts."""
+    from pipeline.export.views import export_views
+    from pipeline.train.checkpoint import load_checkpoint
+
+    job, out = Path(job), Path(out)
+    bad = [w for w in what if w not in EXPORT_FOLDERS]
+    if bad:
+        raise RenderError(f"unknown output {', '.join(bad)}; choose from {', '.join(EXPORT_FOLDERS)}")
+    ckpt = job / "train" / "latest.pt"
+    if not ckpt.is_file():
+        raise RenderError(f"{job} has no trained model ({ckpt} is missing): run `dualphys run` on it first")
+    state = load_checkpoint(ckpt)
+    cams = training_views(job, state)
+    if views == "all":
+        chosen = cams
+    else:
+        by_name = {v.name: v for v in cams} | {Path(v.name).stem: v for v in cams}
+        missing = [n for n in views if n not in by_name]
+        if missing:
+            names = ", ".join(sorted(v.name for v in cams))
+            raise RenderError(f"no view named {', '.join(missing)} in {job}; it has {names}")
+        chosen = [by_name[n] for n in views]
+    chosen = chosen + (path_views(cams, novel) if novel else [])
+    if not chosen:
+        raise RenderError("nothing to render: no views chosen and no novel views asked for")
+    counts = export_views(state, chosen, out, backend=backend, what=what)
+    if state.get("medium") is None and set(what) & {"attenuation", "backscatter"}:
+        log.warning("the job was trained in mode 3dgs: there is no water, so no attenuation/backscatter maps")
+    log.info("rendered %d views (%d novel) of %s into %s", len(chosen), novel, job, out)
+    return {**counts, "novel": novel, "mode": state["mode"]}
+
+
+__all__ = ["RenderError", "path_views", "render_job", "training_views"]

@@ -1,0 +1,21 @@
+"""The evaluate stage: held-out scores, restoration against ground truth, timings -> ``job/evaluate.json``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.job.options import JobOptions, StageContext
+
+
+def stage_evaluate(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    """Held-out scores, restoration against ground truth where it exists, timings, the speed-vs-error curve
+    (``pipeline.evaluate.evaluation``) -> ``job/evaluate.json``."""
+    from pipeline.evaluate.evaluation import evaluate_job
+    from pipeline.job.markers import atomic_write_json
+    from pipeline.job.table import STAGES
+    from pipeline.synth.ground_truth import find_ground_truth
+
+    gt = find_ground_truth(opts.source, opts.ground_truth)
+    res = evaluate_job(job, gt, stages=STAGES[:STAGES.index("evaluate")])
+    atomic_write_json(job / "evaluate.json", res)
+    return res

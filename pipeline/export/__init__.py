@@ -1,0 +1,1 @@
+"""The export stage: the reconstruction PLY and the per-view images."""

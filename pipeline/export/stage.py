@@ -1,0 +1,34 @@
+"""The export stage: the reconstruction PLY, the per-view images and the report -> ``job/output/``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.job.options import JobOptions, StageContext
+
+
+def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    """reconstruction.ply plus restored/, with_water/, attenuation/, backscatter/, depth/ for every input
+    view (training and held-out alike), at the resolution training used; then report.json and report.html
+    (``pipeline.evaluate.report``), which read those files."""
+    import time
+
+    t0 = time.perf_counter()
+    from pipeline.export.views import export_views
+    from pipeline.scene.loader import load_scene
+    from pipeline.scene.types import View
+    from pipeline.splat.ply import export_ply
+    from pipeline.train.checkpoint import load_checkpoint
+
+    state = load_checkpoint(job / "train" / "latest.pt")
+    out = job / "output"
+    out.mkdir(parents=True, exist_ok=True)
+    data = export_ply(state["gaussians"], out / "reconstruction.ply")
+    down = int(state["config"].get("downscale", 1))
+    views = [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
+             for v in load_scene(job / "scene").views]
+    counts = export_views(state, views, out)
+    from pipeline.evaluate.report import write_report
+
+    reports = write_report(job, out, export_s=time.perf_counter() - t0)
+    return {"reconstruction.ply": len(data), **counts, "report": [p.name for p in reports]}

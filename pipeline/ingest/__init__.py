@@ -1,0 +1,1 @@
+"""The ingest stage: validated, upright images from an uploaded archive or a folder."""

@@ -1,0 +1,164 @@
+"""The ingest stage: an uploaded archive or a survey folder → ``job/images/`` (validated, EXIF-oriented).
+
+Every candidate file is decoded (by content, not name). Readable images land in ``images/`` under a flat,
+safe name (sub-folders become ``a__b__name``); JPEG/PNG files already in display orientation are copied
+byte for byte, anything else (rotated by EXIF, TIFF, EXR, WebP, misnamed files) is written as PNG in display
+orientation. Unreadable files are skipped and listed with the reason; non-image files are ignored and listed.
+Fewer than ``min_images`` usable images is an :class:`IngestError` (the caller maps it to a 4xx / exit 1).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import unicodedata
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.ingest.archive import ArchiveLimits, extract_archive
+
+log = logging.getLogger(__name__)
+
+NON_IMAGE_SUFFIXES = frozenset({".txt", ".md", ".csv", ".json", ".xml", ".yaml", ".yml", ".log", ".pdf", ".doc",
+                                ".docx", ".html", ".py", ".sh", ".db", ".ini", ".cfg", ".mp4", ".mov", ".avi"})
+
+
+class IngestError(ValueError):
+    """A set that cannot become a job; ``code`` is stable, the message says why."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class IngestConfig:
+    min_images: int = 3  # fewer usable images than this cannot make a reconstruction
+    limits: ArchiveLimits = field(default_factory=ArchiveLimits)
+
+
+@dataclass
+class IngestResult:
+    images: list[str]  # file names in job/images, sorted
+    skipped: list[dict]  # {"file", "reason"}: looked like images but could not be decoded
+    ignored: list[dict]  # {"file", "reason"}: not images (notes, hidden files ...)
+    source: str
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def safe_name(rel: Path) -> str:
+    """Flatten a relative path to one safe file name: NFC, sub-folders joined by '__', odd characters '_'."""
+    parts = [unicodedata.normalize("NFC", p) for p in rel.parts]
+    name = "__".join(parts)
+    name = re.sub(r"[^\w.\-]", "_", name)
+    return name.lstrip(".") or "image"
+
+
+def _probe(path: Path) -> tuple[str, int]:
+    """(format name, EXIF orientation) from the header, by content; ("", 1) when OIIO does not know the file."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        oiio.geterror()
+        return "", 1
+    try:
+        return inp.format_name(), int(inp.spec().get_int_attribute("Orientation", 1))
+    finally:
+        inp.close()
+
+
+def _candidates(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob("*") if p.is_file())
+
+
+def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = None) -> IngestResult:
+    """Run the stage: ``source`` is a folder of images or a zip/tar archive. Writes ``job_dir/images/`` and
+    ``job_dir/ingest.json``; returns the result. Raises IngestError or pipeline.ingest.archive.ArchiveError."""
+    from pipeline.scene.images import ImageReadError, read_pixels, write_image
+
+    cfg = cfg or IngestConfig()
+    source, job_dir = Path(source), Path(job_dir)
+    images_dir = job_dir / "images"
+    if images_dir.exists():
+        shutil.rmtree(images_dir)  # a re-run starts clean: the marker was not written, so this is partial
+    images_dir.mkdir(parents=True)
+    unpacked = job_dir / "upload"
+    ignored: list[dict] = []
+    if source.is_dir():
+        root = source
+    elif source.is_file():
+        if unpacked.exists():
+            shutil.rmtree(unpacked)
+        extracted = extract_archive(source, unpacked, cfg.limits)
+        ignored += [{"file": n, "reason": why} for n, why in extracted.ignored]
+        root = unpacked
+    else:
+        raise IngestError("no_input", f"no such file or folder: {source}")
+
+    written: dict[str, str] = {}
+    skipped: list[dict] = []
+    for path in _candidates(root):
+        rel = path.relative_to(root)
+        if rel.name.startswith(".") or path.suffix.lower() in NON_IMAGE_SUFFIXES:
+            ignored.append({"file": str(rel), "reason": "not an image file"})
+            continue
+        try:
+            px = read_pixels(path)  # full decode: catches truncated and corrupt files
+        except ImageReadError as e:  # the decoder's message may quote the server-side path: name it as the user did
+            skipped.append({"file": str(rel), "reason": _without_paths(e.reason, {path: rel, root: None})})
+            continue
+        fmt, orientation = _probe(path)
+        stem = Path(safe_name(rel)).stem
+        if orientation == 1 and fmt in ("jpeg", "png"):
+            name = _unique(f"{stem}.{'jpg' if fmt == 'jpeg' else 'png'}", written)
+            shutil.copyfile(path, images_dir / name)
+        else:
+            name = _unique(f"{stem}.png", written)
+            bits = 16 if px.dtype != np.uint8 and fmt in ("tiff", "png", "openexr") else 8
+            rgb = px[:, :, :3] if px.shape[2] >= 3 else np.repeat(px[:, :, :1], 3, axis=2)
+            write_image(images_dir / name, np.clip(rgb, 0, 1), bits=bits)
+        written[name] = str(rel)
+    if unpacked.exists():
+        shutil.rmtree(unpacked)
+    result = IngestResult(sorted(written), skipped, ignored, shown_source(source, job_dir))
+    if len(written) < cfg.min_images:
+        why = f"{len(written)} usable image(s) found; at least {cfg.min_images} are needed"
+        if skipped:
+            why += f" ({len(skipped)} file(s) could not be decoded)"
+        raise IngestError("too_few_images", why)
+    (job_dir / "ingest.json").write_text(json.dumps(result.to_json(), indent=2))
+    log.info("ingest: %d images, %d skipped, %d ignored", len(written), len(skipped), len(ignored))
+    return result
+
+
+def shown_source(source: Path, job_dir: Path) -> str:
+    """How ``ingest.json`` names the input: relative to the job folder when it lies inside (an upload, a survey
+    set's copy), else its own name. Never an absolute path: ingest.json is handed to the service's clients."""
+    try:
+        return Path(source).resolve().relative_to(Path(job_dir).resolve()).as_posix()
+    except ValueError:
+        return Path(source).name
+
+
+def _without_paths(text: str, paths: dict[Path, Path | None]) -> str:
+    """``text`` with each absolute path in ``paths`` replaced by its relative name (or removed, for None)."""
+    for path, rel in paths.items():
+        text = text.replace(str(path) + "/", "" if rel is None else f"{rel}/").replace(str(path), str(rel or "."))
+    return text
+
+
+def _unique(name: str, taken: dict[str, str]) -> str:
+    if name not in taken:
+        return name
+    stem, suffix = name.rsplit(".", 1)
+    k = 2
+    while f"{stem}_{k}.{suffix}" in taken:
+        k += 1
+    return f"{stem}_{k}.{suffix}"

@@ -1,0 +1,56 @@
+"""What a user chooses for a job (CLI flags, API form fields) and what a runner hands the stages. Torch-free."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+
+class JobCancelled(RuntimeError):
+    """The job's ``should_cancel`` said stop; completed stages and checkpoints are kept."""
+
+
+# "auto": a short probe on the training views picks one of the others and sizes the model (pipeline.train.probe).
+JOB_MODES: tuple[str, ...] = ("auto", "3dgs", "homogeneous", "dualphys")
+
+
+@dataclass
+class JobOptions:
+    """What a user chooses for a job (CLI flags / API form fields)."""
+
+    source: str = ""  # archive file or image folder to ingest
+    preset: str = "fast"  # training preset: fast | balanced | paper
+    mode: str = "auto"  # reconstruction mode, one of JOB_MODES
+    max_width: int = 400  # images wider than this are trained at an integer downscale (CPU budget)
+    metric_scale: float | None = None  # metres per scene unit, when the user knows it
+    iterations: int | None = None  # override the preset's iteration count (tests, quick looks)
+    seed: int = 0
+    # A generated scene folder (pipeline.synth.procedural) to score against; unset: found next to an ``images``
+    # source folder when that sits in a generated scene (pipeline.synth.ground_truth).
+    ground_truth: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.mode not in JOB_MODES:
+            raise ValueError(f"unknown mode {self.mode!r}; choose from {', '.join(JOB_MODES)}")
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> JobOptions:
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown job options: {sorted(unknown)}")
+        return cls(**d)
+
+
+@dataclass
+class StageContext:
+    """Callbacks a runner (CLI, worker) hands to the stages."""
+
+    on_progress: Callable[[str, float, str], None] = lambda stage, fraction, message: None
+    should_cancel: Callable[[], bool] = lambda: False
+    device: str = "cpu"
+    extra: dict[str, Any] = field(default_factory=dict)

@@ -1,0 +1,1 @@
+"""The SfM stage: the pycolmap recipe from photos to posed, undistorted images."""

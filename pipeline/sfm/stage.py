@@ -1,0 +1,36 @@
+"""The SfM stage: ``job/images/`` -> ``job/scene/`` through the pycolmap recipe, cancellable."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.job.options import JobCancelled, JobOptions, StageContext
+
+
+def stage_sfm(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    """pycolmap runs in native code, so a watcher thread turns ``should_cancel`` into its CancellationToken;
+    the running step then raises InterruptedError, which becomes JobCancelled."""
+    import threading
+
+    import pycolmap
+
+    from pipeline.config import SfmConfig
+    from pipeline.sfm.recipe import run_sfm
+
+    token, done = pycolmap.CancellationToken(), threading.Event()
+
+    def watch() -> None:
+        while not done.wait(0.25):
+            if ctx.should_cancel():
+                token.cancel()
+                return
+
+    watcher = threading.Thread(target=watch, name="sfm-cancel-watch", daemon=True)
+    watcher.start()
+    try:
+        return run_sfm(job / "images", job / "scene", SfmConfig(seed=opts.seed), cancellation_token=token).to_dict()
+    except InterruptedError as e:
+        raise JobCancelled(f"cancelled during sfm: {e}") from e
+    finally:
+        done.set()
+        watcher.join()

@@ -1,0 +1,1 @@
+"""Generated underwater scenes with ground truth: the procedural and photo-textured families."""

@@ -1,0 +1,121 @@
+"""Ground truth for a job whose images came from our scene generator (``pipeline.synth.procedural``).
+
+A generated scene folder holds ``images/`` (what the job ingests), ``clean/`` (the true restored radiance J),
+``depth/*.npy`` (camera-space z in metres), ``sparse_gt/`` (the true cameras, metres) and ``water.json`` (the
+true β_D, β_B, B∞ and the generator's config). A job finds it either through ``JobOptions.ground_truth`` (the
+scene folder) or, when that is unset, because its source is a folder named ``images`` inside such a scene.
+Nothing else counts as ground truth: a folder must carry the generator's ``water.json`` and ``clean/``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.scene.images import resize_area_to
+from pipeline.scene.loader import load_scene, load_view_image
+from pipeline.scene.types import Scene, View
+
+log = logging.getLogger(__name__)
+
+FAR_DEPTH_M = 999.0  # the generator writes 1000 m where a ray hits nothing
+SEEN_DEPTH_TOL = 0.03  # relative depth agreement for "the other view sees this surface point, not an occluder"
+
+
+class GroundTruthError(ValueError):
+    """A folder given as ground truth is not a generated scene."""
+
+
+@dataclass
+class GroundTruth:
+    """A generated scene's truth."""
+
+    root: Path
+    scene: Scene  # the true PINHOLE cameras (world in metres), views named as the images
+    water: dict  # water.json: preset, beta_D, beta_B (1/m), B_inf, generator config
+
+    def clean(self, view: View) -> np.ndarray:
+        """The true clean radiance of ``view.name`` at ``view.camera``'s size (area-averaged).  # [h, w, 3]"""
+        return load_view_image(View(view.name, view.camera, view.R, view.t, self.root / "clean" / view.name))
+
+    def depth(self, view: View) -> np.ndarray:
+        """True camera-space z (metres) of ``view.name`` at ``view.camera``'s size (area-averaged).  # [h, w]"""
+        z = np.load(self.root / "depth" / f"{Path(view.name).stem}.npy")
+        return resize_area_to(z, (view.camera.height, view.camera.width))
+
+    def seen_by(self, views: Sequence[View], others: Sequence[View]) -> list[np.ndarray]:
+        """For each of ``views`` (true cameras, any size): the pixels whose true surface point one of ``others``
+        (true cameras at their own size) sees, inside its frame and not hidden: the projected depth agrees with
+        that view's true depth within ``SEEN_DEPTH_TOL``. Rays that hit nothing are never seen.  # [h, w] bool each
+
+        Restoration scores over these pixels leave out seabed no training view showed, which no model can
+        restore (it can only invent it). Each of ``others``' depth maps is read once."""
+        surfaces, worlds = [], []
+        for view in views:
+            z = self.depth(view)
+            cam = view.camera
+            x = (np.arange(cam.width) + 0.5 - cam.cx) / cam.fx
+            y = (np.arange(cam.height) + 0.5 - cam.cy) / cam.fy
+            surface = z < FAR_DEPTH_M
+            zs = z[surface].astype(np.float64)
+            xc = np.stack([np.broadcast_to(x[None, :], z.shape)[surface] * zs,
+                           np.broadcast_to(y[:, None], z.shape)[surface] * zs, zs], axis=1)
+            surfaces.append(surface)
+            worlds.append((xc - view.t) @ view.R)  # x_cam = R X + t  ->  X = R^T (x_cam - t)
+        hits = [np.zeros(len(w), dtype=bool) for w in worlds]
+        for o in others:
+            z_map = self.depth(o)
+            for world, hit in zip(worlds, hits, strict=True):
+                u, v, zo = o.project(world)
+                with np.errstate(invalid="ignore"):
+                    inside = (u >= 0) & (u < o.camera.width) & (v >= 0) & (v < o.camera.height)
+                ref = z_map[np.floor(v[inside]).astype(np.int64), np.floor(u[inside]).astype(np.int64)]
+                hit[np.flatnonzero(inside)[np.abs(zo[inside] - ref) <= SEEN_DEPTH_TOL * ref]] = True
+        out = []
+        for surface, hit in zip(surfaces, hits, strict=True):
+            seen = np.zeros(surface.shape, dtype=bool)
+            seen[surface] = hit
+            out.append(seen)
+        return out
+
+
+def is_generated_scene(root: str | Path) -> bool:
+    """True when ``root`` looks like the generator's output (water.json with its config, clean/, sparse_gt/)."""
+    root = Path(root)
+    try:
+        meta = json.loads((root / "water.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return (isinstance(meta, dict) and "generator" in meta and "beta_D" in meta
+            and (root / "clean").is_dir() and (root / "sparse_gt").is_dir())
+
+
+def find_ground_truth(source: str | Path | None, explicit: str | Path | None = None) -> Path | None:
+    """The ground-truth scene folder of a job: ``explicit`` if given (it must be a generated scene), else the
+    parent of a source folder named ``images`` when that parent is a generated scene, else None."""
+    if explicit:
+        if not is_generated_scene(explicit):
+            raise GroundTruthError(f"ground truth {explicit} is not a generated scene folder (water.json with the "
+                                   f"generator's config, clean/, sparse_gt/)")
+        return Path(explicit)
+    if source:
+        src = Path(source)
+        if src.is_dir() and src.name == "images" and is_generated_scene(src.parent):
+            log.info("ground truth found next to the source: %s", src.parent)
+            return src.parent
+    return None
+
+
+def load_ground_truth(root: str | Path) -> GroundTruth:
+    root = Path(root)
+    if not is_generated_scene(root):
+        raise GroundTruthError(f"{root} is not a generated scene folder")
+    return GroundTruth(root, load_scene(root), json.loads((root / "water.json").read_text()))
+
+
+__all__ = ["GroundTruth", "GroundTruthError", "find_ground_truth", "is_generated_scene", "load_ground_truth"]

@@ -1,0 +1,44 @@
+"""A trained model rebuilt from its checkpoint: the Gaussians, the medium module, the SH degree and background
+it was trained with. Rendering it is :func:`pipeline.train.render.render_outputs`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from pipeline.config import MediumConfig, from_dict
+from pipeline.medium.model import Medium
+
+
+def medium_from_state(mode: str, sd: dict[str, Any]) -> Medium:
+    """Rebuild the trained medium module from a checkpoint's ``"medium"`` entry."""
+    cfg = from_dict(MediumConfig, sd["config"])
+    m = Medium(mode, rgb_attenuation=cfg.rgb_attenuation, multiscale_scattering=cfg.multiscale_scattering,
+               gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=sd["depth_scale"])
+    m.load_state_dict(sd["module"])
+    return m.eval()
+
+
+@dataclass
+class TrainedModel:
+    """What rendering a trained job needs, rebuilt from its checkpoint (see :func:`model_from_state`)."""
+
+    mode: str
+    gaussians: dict[str, torch.Tensor]
+    medium: Medium | None  # None in mode 3dgs
+    sh_degree: int  # the SH degree the model was trained up to (capped at the medium's limit in medium modes)
+    background: tuple[float, float, float]  # what training composited behind the Gaussians
+
+
+def model_from_state(state: dict[str, Any]) -> TrainedModel:
+    """The renderable model in a training checkpoint ``state`` (``pipeline.train.checkpoint.load_checkpoint``)."""
+    cfg = state["config"]
+    medium = medium_from_state(state["mode"], state["medium"]) if state.get("medium") else None
+    sh = cfg.get("sh_degree", 3)
+    if medium is not None:
+        sh = min(sh, cfg["medium"].get("max_sh_degree", 1))
+    # Medium modes render J premultiplied over black (the water fills what the Gaussians leave uncovered).
+    background = (0.0, 0.0, 0.0) if medium is not None else tuple(cfg.get("background", (0.0, 0.0, 0.0)))
+    return TrainedModel(state["mode"], dict(state["gaussians"]), medium, sh, background)  # type: ignore[arg-type]

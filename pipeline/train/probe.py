@@ -1,0 +1,333 @@
+"""Model only what a scene needs (``--mode auto``): a short probe on the training views picks the mode.
+
+The probe never sees the test views of :func:`pipeline.scene.split.split_views`. It holds back the quarter of
+the *training* views that see the scene from furthest away (median range to the sparse points), shrinks the
+images to at most ``max_width`` pixels, runs one shared warm-up of plain splatting, then trains each candidate
+mode briefly from that warm-up state and scores it on the held-back views, on the pixels every mode covers:
+
+- ``psnr``: PSNR of the predicted photo (with the water, in medium modes) against the held-back images;
+- ``effect`` (medium modes): how much the learned water changes those views, the mean over covered pixels and
+  channels of ``(1 − A) + B`` (light the water removes plus light it adds), 0 for no water at all.
+
+Every mode runs at SH degree 0, so the modes differ only in the water: with view-independent colour, plain
+splatting cannot fake the colour change with range that water causes, and far views are where that change is
+largest. The rule is :func:`decide`; its thresholds and the measurements behind them are in docs/DECISIONS.md
+("Automatic mode").
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.config import TrainConfig, scaled_train_config, to_dict
+from pipeline.medium.estimate import MediumEstimate
+from pipeline.scene.types import Scene, View
+
+log = logging.getLogger(__name__)
+
+MODES: tuple[str, ...] = ("3dgs", "homogeneous", "dualphys")  # simplest first
+ProbeProgress = Callable[[float, str], None]  # (fraction of the probe done, message)
+
+
+@dataclass
+class ProbeConfig:
+    """The probe's size and the decision rule's thresholds (see docs/DECISIONS.md, "Automatic mode")."""
+
+    min_views: int = 6  # fewer training views than this: no probe, plain 3dgs (nothing to hold back)
+    holdout_fraction: float = 0.25  # this share of the training views, the furthest from the scene, is held back
+    max_width: int = 128  # probe images are area-downscaled by an integer factor to at most this width
+    warmup: int = 150  # shared plain-splatting iterations before the modes branch
+    iterations: int = 250  # iterations of each mode after the warm-up (medium on from the first)
+    max_gaussians: int = 20_000  # densification cap during the probe
+    margin_db: float = 0.3  # homogeneous wins over dualphys when its held-back PSNR is within this of dualphys's
+    noise_db: float = 0.3  # the probe's run-to-run spread: a medium that learned water is refused only when it
+    #                        predicts the held-back views worse than plain splatting by more than this
+    min_effect: float = 0.1  # learned water ((1 − A) + B on the held-back views) below this counts as none
+    lr_reference_iterations: int = 2_000  # the medium's rate boost as for a run with this many medium steps
+    min_alpha: float = 0.95  # held-back pixels are scored where every mode's Gaussians cover at least this much
+    sh_degree: int = 0  # view-independent colour in every mode, so plain splatting cannot fake range-dependent colour
+
+
+@dataclass
+class ModeScore:
+    """One mode's probe result on the held-back views."""
+
+    psnr: float  # dB, with water
+    seconds: float  # this mode's training after the warm-up, plus its scoring
+    covered: float  # share of the held-back pixels scored (rendered by every mode)
+    effect: float | None = None  # mean (1 − A) + B over covered pixels; None for 3dgs
+    measured_effect: float | None = None  # the same for the water the sparse points measured before training, at
+    #                                       their median range (pipeline.medium.estimate); None without a measurement
+    attenuation: float | None = None  # mean 1 − A
+    backscatter: float | None = None  # mean B
+    coefficients: dict[str, Any] = field(default_factory=dict)  # the medium's global β_D, β_B, B∞
+
+    def to_json(self) -> dict:
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in dataclasses.asdict(self).items()}
+
+
+@dataclass
+class Selection:
+    """What ``--mode auto`` chose and why (job/train/selection.json; the report's ``selection``)."""
+
+    requested: str
+    chosen: str
+    reason: str
+    margin: dict[str, float]  # the rule's thresholds: margin_db, min_effect
+    probe: dict[str, dict]  # per mode: ModeScore.to_json()
+    probe_setup: dict[str, Any]  # views fitted / held back, resolution, iterations, warm-up seconds, total seconds
+    water: dict[str, Any] | None = None  # the classifier's type and probabilities, when known
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def view_ranges(points: np.ndarray, views: Sequence[View]) -> np.ndarray:
+    """Median distance from each view's camera to the sparse points it sees (inside its image, in front);
+    NaN for a view that sees none. [V]"""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.full(len(views), np.nan)
+    for k, v in enumerate(views):
+        u, w, _ = v.project(pts)  # NaN behind the camera: fails the test below
+        inside = (u >= 0) & (u < v.camera.width) & (w >= 0) & (w < v.camera.height)
+        if inside.any():
+            out[k] = float(np.median(np.linalg.norm(pts[inside] - v.center, axis=1)))
+    return out
+
+
+def holdout_split(views: Sequence[View], points: np.ndarray, fraction: float) -> tuple[list[int], list[int]]:
+    """Indices (fit, held back) into ``views``: the ``fraction`` of views that see the scene from furthest away
+    (median range to the sparse points) are held back, at least one; at least two are fitted.
+
+    Water is what changes a surface's colour with range, so predicting views further away than any fitted one
+    is where a water model earns its keep and where a model that learned water that is not there loses. Without
+    sparse points the views are held back by name (every 1/fraction-th).
+    """
+    if len(views) < 3:
+        raise ValueError(f"the mode probe needs at least 3 training views, got {len(views)}")
+    n_held = min(len(views) - 2, max(1, round(fraction * len(views))))
+    ranges = view_ranges(points, views)
+    if np.isnan(ranges).all():
+        order = sorted(range(len(views)), key=lambda i: views[i].name)
+        every = max(2, round(1 / fraction))
+        held = [i for k, i in enumerate(order) if k % every == every // 2][:n_held]
+    else:
+        held = sorted(np.argsort(np.nan_to_num(ranges, nan=-np.inf))[::-1][:n_held].tolist())
+    fit = [i for i in range(len(views)) if i not in held]
+    return fit, held
+
+
+def decide(scores: dict[str, ModeScore], cfg: ProbeConfig) -> tuple[str, str]:
+    """(chosen mode, reason). A water model is needed when both hold:
+
+    - the medium modes learned water: the largest ``effect`` is at least ``min_effect``;
+    - a medium mode predicts the held-back (furthest) views about as well as plain splatting or better: water
+      that is really there explains how colours change with range, water that the model invented costs
+      held-back PSNR. "About": within the probe's own run-to-run spread ``noise_db`` (measured on real and
+      generated scenes, docs/DECISIONS.md); a margin below the noise would flip the mode between seeds and
+      between overlapping subsets of the same site. Or, when that race is lost, the sparse points measured
+      the water before training (``measured_effect`` >= ``min_effect``): the race guards against invented
+      water, and water measured from the points' colour change across ranges is not invented (on real hazy
+      footage plain splatting won the far views by 1-4 dB while the points measured 0.46-0.66 of water).
+
+    Then the simplest medium mode within ``margin_db`` of the best medium mode is chosen, else ``3dgs``.
+    (Splatting can imitate water in the photos, so "3dgs is within the margin of the best" alone cannot show
+    that a scene has no water worth modelling out; hence the asymmetric test against 3dgs.)"""
+    detail = "; ".join(f"{m} {scores[m].psnr:.2f} dB" + (f" (water {scores[m].effect:.3f})"
+                                                        if scores[m].effect is not None else "")
+                       for m in MODES if m in scores)
+    media = {m: s for m, s in scores.items() if s.effect is not None}
+    water = max((s.effect or 0.0 for s in media.values()), default=0.0)
+    plain = scores["3dgs"].psnr if "3dgs" in scores else -math.inf
+    best_medium = max(media, key=lambda m: media[m].psnr, default=None)
+    if best_medium is None or water < cfg.min_effect:
+        return "3dgs", f"no water worth modelling (learned water {water:.3f} < {cfg.min_effect:g}). {detail}"
+    measured = max((s.measured_effect or 0.0 for s in media.values()), default=0.0)
+    best = media[best_medium].psnr
+    mode = next(m for m in MODES if m in media and media[m].psnr >= best - cfg.margin_db)
+    simplest = f"the simplest medium mode within {cfg.margin_db:g} dB of the best ({best_medium})"
+    if best >= plain - cfg.noise_db:
+        return mode, (f"the scene has water ({water:.3f} >= {cfg.min_effect:g}) that predicts the held-back "
+                      f"views as well as plain splatting (within the probe's noise, {cfg.noise_db:g} dB); "
+                      f"{simplest}. {detail}")
+    if measured >= cfg.min_effect:
+        return mode, (f"the scene has water: learned {water:.3f} and measured from the sparse points before "
+                      f"training {measured:.3f} (>= {cfg.min_effect:g}); plain splatting predicts the held-back "
+                      f"views {plain - best:.2f} dB better, which water the points measured cannot be blamed for "
+                      f"(real footage: exposure changes, moving animals); {simplest}. {detail}")
+    return "3dgs", (f"the learned water ({water:.3f}) predicts the held-back views worse than plain "
+                    f"splatting by more than the probe's noise ({best:.2f} < {plain:.2f} - {cfg.noise_db:g} dB) "
+                    f"and the sparse points do not measure it ({measured:.3f} < {cfg.min_effect:g}). {detail}")
+
+
+def probe_config(base: TrainConfig, cfg: ProbeConfig, width: int, mode: str) -> TrainConfig:
+    """A short run of ``mode`` in the probe's schedule: warm-up + iterations, SH degree 1, the medium on
+    right after the warm-up; the medium section (water decision) is taken from ``base``."""
+    total = cfg.warmup + cfg.iterations
+    c = scaled_train_config(total, checkpoint_every=0, max_gaussians=cfg.max_gaussians)
+    c.mode = mode  # type: ignore[assignment]
+    c.seed, c.backend, c.log_every, c.sh_degree = base.seed, base.backend, 0, cfg.sh_degree
+    c.downscale = max(1, math.ceil(width / cfg.max_width))
+    c.medium = copy.deepcopy(base.medium)
+    c.medium.start_fraction = cfg.warmup / total
+    c.medium.lr_reference_iterations = cfg.lr_reference_iterations
+    return c
+
+
+def _render_held(trainer, views: Sequence[View]) -> list:
+    """The trained probe model's outputs (I, A, B, alpha) for the held-back views."""
+    return [trainer.outputs(v) for v in views]
+
+
+def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndarray]) -> dict[str, float]:
+    """PSNR with water over the masked pixels of all held-back views (pooled) and, for a medium, its mean
+    attenuation 1 − A and backscatter B there."""
+    from pipeline.evaluate.metrics import psnr
+
+    se, n, att, bs = 0.0, 0, [], []
+    for out, t, m in zip(outputs, targets, masks, strict=True):
+        d = out.I[m].astype(np.float64) - t[m]
+        se, n = se + float((d * d).sum()), n + d.size
+        if out.A is not None and out.B is not None:
+            att.append(1.0 - out.A[m])
+            bs.append(out.B[m])
+    res = {"psnr": psnr(se / max(n, 1)), "covered": n / 3 / sum(m.size for m in masks)}
+    if att:
+        a, b = float(np.concatenate(att).mean()), float(np.concatenate(bs).mean())
+        res.update(attenuation=a, backscatter=b, effect=a + b)
+    return res
+
+
+def _steps(trainer, n: int, should_cancel: Callable[[], bool]) -> None:
+    from pipeline.train.trainer import TrainingCancelled
+
+    for _ in range(n):
+        if should_cancel():
+            raise TrainingCancelled(trainer.iteration)
+        trainer.step()
+
+
+def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: ProbeConfig | None = None, *,
+              modes: Sequence[str] = MODES, requested: str = "auto", water: dict | None = None,
+              on_progress: ProbeProgress | None = None, should_cancel: Callable[[], bool] = lambda: False,
+              device: str = "cpu") -> Selection:
+    """Probe ``modes`` on the training views of ``scene`` (``images[i]`` belongs to ``scene.views[i]``) and
+    decide. ``base`` supplies the seed, backend and medium settings (the water decision applied)."""
+    from pipeline.train.setup import prepare_images
+    from pipeline.train.trainer import Trainer
+
+    cfg = cfg or ProbeConfig()
+    report = on_progress or (lambda f, m: None)
+    t_start = time.perf_counter()
+    fit, held = holdout_split(scene.views, scene.points, cfg.holdout_fraction)
+    width = scene.views[0].camera.width
+    fit_scene = scene.subset([scene.views[i] for i in fit])  # keeps the points' tracks
+    fit_images = [images[i] for i in fit]
+    cfg3 = probe_config(base, cfg, width, "3dgs")
+    held_views, held_targets = prepare_images([scene.views[i] for i in held], [images[i] for i in held],
+                                              cfg3.downscale, torch.device(device))
+    total_steps = cfg.warmup + cfg.iterations * len(modes)
+    report(0.0, f"probe: warm-up on {len(fit)} views, {len(held)} held back")
+    t0 = time.perf_counter()
+    warm = Trainer(fit_scene, fit_images, cfg3, device=device)
+    _steps(warm, cfg.warmup, should_cancel)
+    warm_state = warm.state_dict()
+    warm_s = time.perf_counter() - t0
+    outputs, seconds, coefficients, measured = {}, {}, {}, {}
+    for k, mode in enumerate(modes):
+        report((cfg.warmup + k * cfg.iterations) / total_steps, f"probe: {mode}")
+        t0 = time.perf_counter()
+        mcfg = probe_config(base, cfg, width, mode)
+        tr = Trainer(fit_scene, fit_images, mcfg, device=device)
+        state = copy.deepcopy(warm_state)  # branches must not share tensors (Adam updates in place)
+        state.update(mode=mode, config=to_dict(mcfg), medium=None)
+        tr.load_state_dict(state)
+        _steps(tr, cfg.iterations, should_cancel)
+        outputs[mode] = _render_held(tr, held_views)
+        seconds[mode] = time.perf_counter() - t0
+        if tr.medium is not None:
+            coefficients[mode] = {k: v for k, v in tr.medium.effective_coefficients().items() if k != "units"}
+            if tr.medium.estimate is not None:
+                measured[mode] = MediumEstimate(**tr.medium.estimate).effect()
+    # Score only where every mode rendered a surface: where the fitted views never reached, the medium modes
+    # would win by painting the water's colour and plain splatting lose by painting black.
+    targets = [t.cpu().numpy() for t in held_targets]
+    masks = [np.logical_and.reduce([outputs[m][i].alpha > cfg.min_alpha for m in modes])
+             for i in range(len(held_views))]
+    scores: dict[str, ModeScore] = {}
+    for mode in modes:
+        s = _score(outputs[mode], targets, masks)
+        scores[mode] = ModeScore(seconds=seconds[mode], coefficients=coefficients.get(mode, {}),
+                                 measured_effect=measured.get(mode), **s)
+        log.info("probe %s: held-back PSNR %.2f dB%s (%.1f s)", mode, s["psnr"],
+                 f", water effect {s['effect']:.3f}" if "effect" in s else "", seconds[mode])
+    chosen, reason = decide(scores, cfg)
+    report(1.0, f"probe: chose {chosen}")
+    cam = held_views[0].camera
+    setup = {"fit_views": [scene.views[i].name for i in fit], "held_back_views": [scene.views[i].name for i in held],
+             "resolution": [cam.width, cam.height], "warmup_iterations": cfg.warmup,
+             "iterations_per_mode": cfg.iterations, "sh_degree": cfg.sh_degree, "warmup_seconds": round(warm_s, 2),
+             "seconds": round(time.perf_counter() - t_start, 2)}
+    log.info("mode auto: %s (%s)", chosen, reason)
+    return Selection(requested=requested, chosen=chosen, reason=reason,
+                     margin={"margin_db": cfg.margin_db, "min_effect": cfg.min_effect, "noise_db": cfg.noise_db},
+                     probe={m: s.to_json() for m, s in scores.items()}, probe_setup=setup,
+                     water=_water_summary(water))
+
+
+def _water_summary(water: dict | None) -> dict | None:
+    return {k: water[k] for k in ("water_type", "probabilities") if k in water} if water else None
+
+
+def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: TrainConfig, *,
+                   water: dict | None = None, cfg: ProbeConfig | None = None,
+                   on_progress: ProbeProgress | None = None, should_cancel: Callable[[], bool] = lambda: False,
+                   device: str = "cpu") -> dict:
+    """``--mode auto`` in a job: probe, decide, scale the budget to the scene, write ``out_dir/selection.json``
+    and return its content. A selection.json written for the same inputs is reused (a resumed training job
+    does not probe again)."""
+    from pipeline.job.markers import atomic_write_json, config_hash
+    from pipeline.train.budget import scene_budget
+
+    cfg = cfg or ProbeConfig()
+    key = config_hash({"base": to_dict(base), "probe": dataclasses.asdict(cfg),
+                       "views": [v.name for v in scene.views], "water": water})
+    path = Path(out_dir) / SELECTION_FILE
+    if path.exists():
+        saved = json.loads(path.read_text())
+        if saved.get("key") == key:
+            log.info("mode auto: reusing %s (%s)", path, saved["chosen"])
+            return saved
+    if len(scene.views) < cfg.min_views:
+        sel = Selection(requested="auto", chosen="3dgs",
+                        margin={"margin_db": cfg.margin_db, "min_effect": cfg.min_effect, "noise_db": cfg.noise_db},
+                        reason=f"{len(scene.views)} training views are too few to hold some back for the probe "
+                               f"(it needs {cfg.min_views}); the simplest mode", probe={},
+                        probe_setup={"skipped": True}, water=_water_summary(water))
+    else:
+        sel = run_probe(scene, images, base, cfg, water=water, on_progress=on_progress,
+                        should_cancel=should_cancel, device=device)
+    cam = scene.views[0].camera
+    budget = scene_budget(len(scene.views), cam.width // base.downscale, cam.height // base.downscale,
+                          base.densify.max_gaussians, base.sh_degree)
+    out = {**sel.to_json(), "budget": budget.to_json(), "key": key}
+    atomic_write_json(path, out)
+    return json.loads(path.read_text())  # exactly what a resumed job and the report will read
+
+
+SELECTION_FILE = "selection.json"
+
+__all__ = ["MODES", "ModeScore", "ProbeConfig", "Selection", "decide", "holdout_split", "probe_config",
+           "run_probe", "select_for_job", "SELECTION_FILE"]

@@ -1,0 +1,329 @@
+"""Training: plain 3DGS (mode ``3dgs``) on posed images, with checkpoints, progress and cancellation.
+
+Recipe (graphdeco 3DGS, Kerbl et al. 2023): loss 0.8 L1 + 0.2 (1 - SSIM); Adam (eps 1e-15) with position lr
+1.6e-4 -> 1.6e-6 x scene extent (exponential decay over the run), SH DC 2.5e-3, higher bands /20, opacity
+0.05, scale 0.005, rotation 0.001; active SH degree +1 every ``sh_degree_interval``; one random view per
+iteration (each view once per epoch, seeded); densification by gsplat's strategy (``pipeline.splat.densify``).
+
+Layout: ``Trainer.step`` is one iteration and nothing else; progress, checkpoints and held-out evaluation
+are hooks (``pipeline.train.hooks``) run after each step by ``Trainer.run``; ``train`` wires them for the
+stage and the worker. Setup pieces (extent, images, schedules, optimisers, init) are in
+``pipeline.train.setup``. A medium mode extends ``Trainer.compute_losses`` and fills the ``"medium"`` entry
+of the state dict; its parameters never enter ``self.gaussians``, so densification cannot touch them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from pipeline.config import TrainConfig, from_dict, to_dict
+from pipeline.medium.term import MediumTerm
+from pipeline.scene.types import Scene, View
+from pipeline.splat.densify import Densifier
+from pipeline.splat.gaussians import GAUSSIAN_KEYS
+from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
+from pipeline.train.hooks import Hook, ProgressFn, checkpoint_hook, eval_hook, log_hook, progress_hook
+from pipeline.train.image_losses import l1, ssim
+from pipeline.train.render import RenderOutput, ViewOutputs, render_gaussians, render_outputs, render_view, view_tensors
+from pipeline.train.setup import (
+    ImageLike,
+    active_sh_degree,
+    initial_gaussians,
+    make_optimizers,
+    means_lr,
+    prepare_images,
+    scene_extent,
+)
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "CHECKPOINT_NAME",
+    "STATE_VERSION",
+    "TrainResult",
+    "Trainer",
+    "TrainingCancelled",
+    "photometric_losses",
+    "render_view",
+    "scene_extent",
+    "train",
+]
+
+CHECKPOINT_NAME = "latest.pt"
+RESET_RECOVERY_REFINES = 2  # medium modes: the last opacity reset is at least this many refinements before the
+#                             medium starts (docs/DECISIONS.md, "The water must not eat the scene")
+STATE_VERSION = 1
+# Config fields that do not change what is trained: a checkpoint differing only in these still resumes.
+_NON_SEMANTIC = {"log_every", "checkpoint_every", "eval_every"}
+
+
+class TrainingCancelled(RuntimeError):
+    """``should_cancel()`` returned True; ``checkpoint`` is where the state was saved (None if nowhere)."""
+
+    def __init__(self, iteration: int, checkpoint: Path | None = None) -> None:
+        super().__init__(f"training cancelled at iteration {iteration}")
+        self.iteration = iteration
+        self.checkpoint = checkpoint
+
+
+@dataclass
+class TrainResult:
+    gaussians: nn.ParameterDict
+    iteration: int
+    metrics: dict[str, float]  # of the last step, plus "test_psnr" when held-out views were given
+    history: list[dict[str, float]] = field(default_factory=list)  # held-out: iteration, elapsed_s, psnr
+    checkpoint: Path | None = None
+    elapsed_s: float = 0.0  # training seconds (steps only), summed across resumes
+    medium: dict[str, Any] = field(default_factory=dict)  # medium modes: recovered per-channel coefficients
+
+
+def photometric_losses(render: Tensor, target: Tensor, ssim_weight: float) -> dict[str, Tensor]:
+    """3DGS loss as named, already-weighted terms (sum them once): (1 - w) L1 and w (1 - SSIM).
+    [H, W, 3] x2 -> {"l1": [], "dssim": []}"""
+    return {
+        "l1": (1.0 - ssim_weight) * l1(render, target),
+        "dssim": ssim_weight * (1.0 - ssim(render, target)),
+    }
+
+
+class Trainer:
+    """Owns the Gaussians, their optimisers, the densifier, the RNGs and the iteration counter."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        images: Sequence[ImageLike],  # one [H, W, 3] float image in [0, 1] per scene view
+        cfg: TrainConfig,
+        *,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.views, self.targets = prepare_images(scene.views, images, cfg.downscale, self.device)
+        self.extent = scene_extent(self.views)
+        torch.manual_seed(cfg.seed)  # gsplat's split samples from the global generator
+        self.gaussians = initial_gaussians(scene, cfg, self.extent, self.device)
+        self.optimizers = make_optimizers(self.gaussians, cfg, self.extent)
+        densify = cfg.densify
+        if cfg.mode != "3dgs":  # growth goes on while the medium settles (DensifyConfig.medium_refine_factor)
+            densify = replace(densify, refine_stop=round(densify.refine_stop * densify.medium_refine_factor))
+        self.densifier = Densifier(densify, scene_scale=self.extent)
+        self.densifier.check(self.gaussians, self.optimizers)
+        self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)  # [3]
+        self.medium: MediumTerm | None = None
+        self.max_sh_degree = cfg.sh_degree
+        if cfg.mode != "3dgs":
+            # J is rendered premultiplied over black; uncovered pixels see the water's veiling light instead.
+            self.background = torch.zeros(3, device=self.device)
+            self.medium = MediumTerm(cfg.mode, cfg.medium, scene, self.views, self.targets, cfg.iterations,
+                                     self.device)
+            self.max_sh_degree = min(cfg.sh_degree, cfg.medium.max_sh_degree)
+            # Opacity resets only while J alone is fitted, with time to recover before the medium starts: once
+            # the water is on, an uncovered pixel shows the veil, and a reset scene is not brought back.
+            self.densifier.stop_resets_at(self.medium.start - RESET_RECOVERY_REFINES * cfg.densify.refine_every)
+        self.cameras = [view_tensors(v, self.device) for v in self.views]  # (viewmat [4,4], K [3,3])
+        self.iteration = 0  # iterations completed
+        self.elapsed_s = 0.0
+        self.history: list[dict[str, float]] = []
+        self._view_gen = torch.Generator().manual_seed(cfg.seed)
+        self._view_queue: list[int] = []
+
+    def next_view(self) -> int:
+        """Random view; each view once per epoch (graphdeco's shuffled stack), from the seeded generator."""
+        if not self._view_queue:
+            self._view_queue = torch.randperm(len(self.views), generator=self._view_gen).tolist()
+        return self._view_queue.pop()
+
+    def render(self, i: int, sh_degree: int, render_mode: str = "RGB") -> RenderOutput:
+        viewmat, K = self.cameras[i]
+        cam = self.views[i].camera
+        return render_gaussians(self.gaussians, viewmat, K, cam.width, cam.height, sh_degree=sh_degree,
+                                background=self.background, backend=self.cfg.backend,
+                                render_mode=render_mode)  # type: ignore[arg-type]  # fmt: skip
+
+    def medium_on(self, iteration: int) -> bool:
+        return self.medium is not None and self.medium.active(iteration)
+
+    def compute_losses(self, out: RenderOutput, i: int) -> dict[str, Tensor]:
+        """Named, already weighted loss terms for view ``i``; the step sums them once."""
+        if self.medium is not None and self.medium_on(self.iteration + 1):
+            assert out.depth is not None
+            return self.medium.losses(i, out.image, out.alpha, out.depth, self.targets[i])
+        return photometric_losses(out.image, self.targets[i], self.cfg.ssim_weight)
+
+    def outputs(self, view: View) -> ViewOutputs:
+        """Everything the model renders for ``view`` (J, I, A, B, depth, alpha), through the medium once it is on."""
+        medium = self.medium.medium if self.medium is not None and self.medium_on(self.iteration) else None
+        return render_outputs(self.gaussians, view, medium, self.max_sh_degree, self.cfg.backend, self.background)
+
+    def predict(self, view: View) -> Tensor:
+        """The photo this model predicts for ``view`` (with water in medium modes), clamped. [H, W, 3]"""
+        return torch.from_numpy(self.outputs(view).I)
+
+    def step(self) -> dict[str, float]:
+        """One iteration: render a view, loss, backward, Adam, densification."""
+        it = self.iteration + 1
+        self.optimizers["means"].param_groups[0]["lr"] = means_lr(self.cfg, self.extent, it)
+        i, sh_degree = self.next_view(), min(active_sh_degree(self.cfg, it), self.max_sh_degree)
+        out = self.render(i, sh_degree, "RGB+ED" if self.medium_on(it) else "RGB")
+        self.densifier.pre_backward(self.gaussians, self.optimizers, it, out.info)
+        losses = self.compute_losses(out, i)
+        loss = sum(losses.values())
+        terms = {k: float(v.detach()) for k, v in losses.items()}
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite loss at iteration {it}: {terms}")
+        loss.backward()
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        if self.medium is not None:
+            self.medium.step()
+            grad = out.info["means2d"].grad
+            if grad is not None:  # the photo's gradients are A times the scene's: densify on the scene's scale
+                grad.mul_(self.medium.densify_gain(i))
+        event = self.densifier.post_backward(self.gaussians, self.optimizers, it, out.info)
+        self.iteration = it
+        metrics = {"loss": float(loss.detach()), **terms, "n_gaussians": float(len(self.gaussians["means"])),
+                   "sh_degree": float(sh_degree)}  # fmt: skip
+        if event is not None:
+            metrics.update(duplicated=float(event.duplicated), split=float(event.split), pruned=float(event.pruned))
+        return metrics
+
+    def run(self, hooks: Sequence[Hook] = (), should_cancel: Callable[[], bool] | None = None) -> dict[str, float]:
+        """Step to ``cfg.iterations``, running every hook after each step. ``should_cancel`` is checked
+        before every step; True raises ``TrainingCancelled`` (the caller saves the checkpoint)."""
+        metrics: dict[str, float] = {}
+        while self.iteration < self.cfg.iterations:
+            if should_cancel is not None and should_cancel():
+                raise TrainingCancelled(self.iteration)
+            t0 = time.perf_counter()
+            metrics = self.step()
+            self.elapsed_s += time.perf_counter() - t0
+            for hook in hooks:
+                hook(self, metrics)
+        return metrics
+
+    # -- state --
+
+    def state_dict(self) -> dict[str, Any]:
+        """Named and versioned: everything needed to continue exactly where this run is."""
+        return {
+            "state_version": STATE_VERSION,
+            "mode": self.cfg.mode,
+            "config": to_dict(self.cfg),
+            "iteration": self.iteration,
+            "elapsed_s": self.elapsed_s,
+            "history": list(self.history),
+            "gaussians": {k: v.detach().clone() for k, v in self.gaussians.items()},
+            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
+            "densify": self.densifier.state_dict(),
+            "rng": {
+                "torch": torch.get_rng_state(),  # gsplat's split draws from it
+                "views": self._view_gen.get_state(),
+                "view_queue": list(self._view_queue),
+            },
+            "medium": self.medium.state_dict() if self.medium is not None else None,
+        }
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        if sd.get("state_version") != STATE_VERSION or sd.get("mode") != self.cfg.mode:
+            raise ValueError(
+                f"cannot resume: state version {sd.get('state_version')!r} mode {sd.get('mode')!r}, "
+                f"expected {STATE_VERSION} / {self.cfg.mode!r}"
+            )
+        changed = config_changes(sd["config"], self.cfg)
+        if changed:
+            log.warning("resuming with a changed config; fields differing from the checkpoint: %s", changed)
+        for k in GAUSSIAN_KEYS:
+            self.gaussians[k] = nn.Parameter(sd["gaussians"][k].to(self.device))
+        self.optimizers = make_optimizers(self.gaussians, self.cfg, self.extent)
+        for k, opt in self.optimizers.items():
+            opt.load_state_dict(sd["optimizers"][k])
+        self.densifier.load_state_dict(sd["densify"])
+        torch.set_rng_state(sd["rng"]["torch"])
+        self._view_gen.set_state(sd["rng"]["views"])
+        self._view_queue = list(sd["rng"]["view_queue"])
+        self.iteration = int(sd["iteration"])
+        self.elapsed_s = float(sd["elapsed_s"])
+        self.history = list(sd["history"])
+        if self.medium is not None and sd.get("medium") is not None:
+            self.medium.load_state_dict(sd["medium"])
+
+    def save(self, path: str | Path) -> Path:
+        return save_checkpoint(path, self.state_dict())
+
+    def load(self, path: str | Path) -> None:
+        self.load_state_dict(load_checkpoint(path, map_location=self.device))
+        log.info("resumed from %s at iteration %d", path, self.iteration)
+
+
+def config_changes(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
+    """Fields of ``cfg`` that differ from a checkpoint's saved config (all fields, including cosmetic ones)."""
+    try:
+        saved_cfg = to_dict(from_dict(TrainConfig, saved))  # normalises JSON/tuple differences
+    except (TypeError, ValueError):  # written by another version of TrainConfig
+        return sorted(set(saved) ^ set(to_dict(cfg))) or ["<unreadable>"]
+    return [k for k, v in to_dict(cfg).items() if saved_cfg.get(k) != v]
+
+
+def train(
+    scene: Scene,
+    images: Sequence[ImageLike],
+    cfg: TrainConfig,
+    *,
+    test_views: Sequence[View] = (),
+    test_images: Sequence[ImageLike] = (),
+    checkpoint_dir: str | Path | None = None,
+    on_progress: ProgressFn | None = None,
+    should_cancel: Callable[[], bool] | None = None,
+    device: torch.device | str = "cpu",
+    hooks: Sequence[Hook] = (),
+) -> TrainResult:
+    """Train on ``scene.views`` with ``images`` (one [H, W, 3] float image in [0, 1] per view).
+
+    With ``checkpoint_dir``: resumes from ``<dir>/latest.pt`` when it was written with the same config
+    (else starts afresh, with a warning, and overwrites it); saves it every ``cfg.checkpoint_every``
+    iterations, at the end, and before raising ``TrainingCancelled``. ``on_progress(iteration, total,
+    metrics)`` runs after every step, ``should_cancel()`` before every step; ``hooks`` run after every step
+    before the built-in ones (``pipeline.train.hooks``). Held-out views
+    (``test_views``/``test_images``) are scored every ``cfg.eval_every`` iterations and at the end.
+    """
+    trainer = Trainer(scene, images, cfg, device=device)
+    ckpt = Path(checkpoint_dir) / CHECKPOINT_NAME if checkpoint_dir is not None else None
+    if ckpt is not None and ckpt.exists():
+        saved = load_checkpoint(ckpt, map_location=trainer.device)
+        changed = set(config_changes(saved.get("config", {}), cfg)) - _NON_SEMANTIC
+        if changed:
+            log.warning("checkpoint %s was trained with other settings (%s): starting afresh", ckpt, sorted(changed))
+        else:
+            trainer.load_state_dict(saved)
+            log.info("resumed from %s at iteration %d", ckpt, trainer.iteration)
+    hooks = [*hooks, log_hook(cfg.log_every)]
+    if test_views:
+        views, targets = prepare_images(test_views, test_images, cfg.downscale, trainer.device)
+        hooks.append(eval_hook(cfg.eval_every, views, targets))
+    if ckpt is not None:
+        hooks.append(checkpoint_hook(cfg.checkpoint_every, ckpt))
+    if on_progress is not None:
+        hooks.append(progress_hook(on_progress))  # last, so it sees "test_psnr"
+    try:
+        metrics = trainer.run(hooks, should_cancel)
+    except TrainingCancelled as exc:
+        if ckpt is not None:
+            exc.checkpoint = trainer.save(ckpt)
+        else:
+            log.warning("training cancelled at iteration %d without checkpoint_dir: state lost", exc.iteration)
+        raise
+    if ckpt is not None:
+        trainer.save(ckpt)
+    medium = trainer.medium.effective_coefficients() if trainer.medium is not None else {}
+    return TrainResult(trainer.gaussians, trainer.iteration, metrics, trainer.history, ckpt, trainer.elapsed_s,
+                       medium)

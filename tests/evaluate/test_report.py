@@ -1,0 +1,195 @@
+"""A whole job on a tiny generated scene (ingest -> sfm -> classify -> train -> evaluate -> export): the
+evaluation's numbers, report.json against its schema, and report.html as a standalone page in Chromium."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+import re
+import shutil
+import subprocess
+
+import jsonschema
+import numpy as np
+import pytest
+
+from pipeline.config import SynthConfig
+from pipeline.evaluate.evaluation import evaluate_job
+from pipeline.evaluate.report import SCHEMA_FILE, build_report, validate_report, write_report
+from pipeline.job.markers import atomic_write_json
+from pipeline.job.options import JobOptions
+from pipeline.job.runner import run_job
+from pipeline.job.table import STAGES
+from pipeline.synth.procedural import generate_scene
+
+ITERATIONS = 150
+
+
+@pytest.fixture(scope="module")
+def job(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    scene = generate_scene(SynthConfig(views=12, width=96, height=72, preset="medium", seed=0), root / "scene")
+    results = run_job(root / "job", JobOptions(source=str(scene / "images"), mode="dualphys", iterations=ITERATIONS))
+    return root / "job", results
+
+
+def _report(job_dir):
+    return json.loads((job_dir / "output" / "report.json").read_text())
+
+
+def test_stage_order_puts_evaluate_between_train_and_export():
+    assert STAGES == ("ingest", "sfm", "classify", "train", "evaluate", "export")
+
+
+def test_report_json_follows_its_schema_and_holds_real_numbers(job, record_property):
+    job_dir, results = job
+    r = _report(job_dir)
+    validate_report(r)
+    assert r["schema_version"] == 1 and r["mode"] == "dualphys" and r["preset"] == "fast"
+    assert r["selection"] == {"mode": "dualphys", "requested": "dualphys", "reason": "requested by the user"}
+    assert r["water"]["water_type"] in ("clear", "medium", "turbid")
+    t = r["metrics"]["test"]
+    assert t["n_views"] == 2 and t["views"] == ["frame_0000.png", "frame_0008.png"]  # every 8th by name
+    assert 18.0 < t["psnr"] < 40.0 and 0.3 < t["ssim"] <= 1.0
+    assert t["lpips"] is None and "DUALPHYS_LPIPS_WEIGHTS" in t["lpips_reason"]
+    rest = r["restoration"]
+    record_property("restored_psnr", rest["restored"]["psnr"])
+    record_property("photo_psnr", rest["input"]["psnr"])
+    record_property("test_psnr", t["psnr"])
+    assert 5.0 < rest["restored"]["psnr"] < 40.0 and math.isfinite(rest["input"]["psnr"])
+    # The model with water, rendered from the true cameras, must look like the photos about as well as it does
+    # from its own cameras: the check that the true cameras were carried into the model's world correctly.
+    assert abs(rest["with_water"]["psnr"] - t["psnr"]) < 3.0
+    seen = rest["seen"]  # restoration over the pixels some training view saw
+    record_property("restored_seen_psnr", seen["restored_psnr"])
+    assert 0.3 < seen["fraction"] <= 1.0 and [p["name"] for p in seen["per_view"]] == rest["views"]
+    assert 5.0 < seen["restored_psnr"] < 50.0 and math.isfinite(seen["input_psnr"])
+    assert rest["alignment"]["rot_err_deg_mean"] < 2.0 and 0 < rest["metres_per_unit"]
+    coef = rest["coefficients"]
+    record_property("beta_D_rel_error", coef["beta_D"]["rel_error"])
+    assert coef["beta_D"]["true"] == [0.55, 0.17, 0.11] and coef["units"]["beta_D"] == "1/m"
+    assert all(0 < b < 5 for b in coef["beta_D"]["estimated"])
+    assert rest["depth"]["scale_aligned"]["rel_error"] < 0.3 and rest["depth"]["at_alignment_scale"]["n_pixels"] > 0
+    tm = r["timings"]
+    assert set(tm["stages_s"]) == set(STAGES) and all(v is not None and v >= 0 for v in tm["stages_s"].values())
+    assert tm["total_s"] == pytest.approx(sum(tm["stages_s"].values()))
+    assert tm["train_iterations_per_s"] > 0 and tm["render_ms_per_view"]["median"] > 0
+    assert r["model"]["n_gaussians"] == results["train"]["n_gaussians"] > 0
+    assert r["outputs"] == {f: 12 for f in ("restored", "with_water", "attenuation", "backscatter", "depth")}
+
+
+def test_speed_vs_error_is_increasing_in_time_and_ends_at_the_final_model(job):
+    job_dir, _ = job
+    sve = _report(job_dir)["speed_vs_error"]
+    pts = sve["points"]
+    assert 6 <= len(pts) <= 9
+    assert all(b["elapsed_s"] > a["elapsed_s"] for a, b in zip(pts, pts[1:]))
+    assert all(b["iteration"] > a["iteration"] for a, b in zip(pts, pts[1:]))
+    assert pts[-1]["iteration"] == ITERATIONS and sve["includes_final"]
+    assert pts[-1]["psnr"] > pts[0]["psnr"]  # training helped
+    png = (job_dir / "output" / sve["plot"]).read_bytes()
+    assert png.startswith(b"\x89PNG\r\n\x1a\n")
+
+
+def test_schema_rejects_a_report_missing_required_fields(job):
+    job_dir, _ = job
+    schema = json.loads(SCHEMA_FILE.read_text())
+    r = _report(job_dir)
+    for broken in ({k: v for k, v in r.items() if k != "speed_vs_error"},
+                   {**r, "metrics": {"test": {k: v for k, v in r["metrics"]["test"].items() if k != "lpips"}}},
+                   {**r, "schema_version": 2}):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(broken, schema)
+
+
+def test_report_without_ground_truth_has_null_restoration(job, tmp_path):
+    job_dir, _ = job
+    copy = tmp_path / "job"
+    shutil.copytree(job_dir, copy, ignore=shutil.ignore_patterns("evaluate", "report.*", "speed_vs_error.png"))
+    atomic_write_json(copy / "evaluate.json", evaluate_job(copy, None, stages=STAGES[:4]))
+    paths = write_report(copy, copy / "output")
+    assert {p.name for p in paths} == {"report.json", "report.html", "speed_vs_error.png"}
+    r = json.loads((copy / "output" / "report.json").read_text())
+    validate_report(r)
+    assert r["restoration"] is None and r["model"]["metres_per_unit"] is None
+    assert "No ground truth" in (copy / "output" / "report.html").read_text()
+    sel = {"requested": "auto", "chosen": "3dgs", "reason": "probe: no water found", "probe": {"3dgs": {"psnr": 30}}}
+    (copy / "train" / "selection.json").write_text(json.dumps(sel))
+    r = build_report(copy)
+    validate_report(r)
+    assert r["selection"] == {**sel, "mode": "3dgs"}
+
+
+def _png_shape(data: bytes) -> tuple[int, ...]:
+    import matplotlib.image as mpimg
+
+    return mpimg.imread(io.BytesIO(data), format="png").shape
+
+
+def test_report_html_stands_alone_with_every_image_embedded(job):
+    job_dir, _ = job
+    html = (job_dir / "output" / "report.html").read_text()
+    srcs = re.findall(r'<img[^>]*\ssrc="([^"]*)"', html)
+    assert len(srcs) == 2 * 4 + 2 * 3 + 1  # 2 held-out views x (photo, model, restored, truth) + 2 x (A, B, depth)
+    for src in srcs:  # + the curve
+        assert src.startswith("data:image/png;base64,"), src[:40]
+        shape = _png_shape(base64.b64decode(src.split(",", 1)[1], validate=True))
+        assert len(shape) == 3 and shape[0] >= 60 and shape[1] >= 80
+    assert not re.search(r'(src|href)="(?!data:)', html)  # nothing the page would fetch
+    assert "restored J vs true clean J" in html and "Water type" in html and "Config" in html
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium is not installed (.ci/run installs it)")
+def test_report_html_renders_in_headless_chromium(job, tmp_path):
+    import matplotlib.image as mpimg
+
+    job_dir, _ = job
+    shot = tmp_path / "shot.png"
+    subprocess.run(["chromium", "--headless", "--no-sandbox", "--disable-gpu", f"--screenshot={shot}",
+                    "--window-size=1200,2000", (job_dir / "output" / "report.html").resolve().as_uri()],
+                   check=True, capture_output=True, timeout=120)
+    px = mpimg.imread(shot)[..., :3]
+    assert px.shape[:2] == (2000, 1200)
+    # A blank or broken page is flat; the report's text, tables and pictures are not.
+    assert float(px.std()) > 0.1
+    assert float(np.abs(np.diff(px, axis=0)).mean()) > 0.005
+
+
+def test_report_says_what_happened(job, tmp_path):
+    """Issue 13, item 13: the input and the SfM summary are shown, the water decision stands next to the mode,
+    a 3dgs job says no water was removed (and shows no restored J), the header's PSNR and the curve's last point
+    are either the same number or each named with its view set, and no absolute path is left."""
+    job_dir, results = job
+    r = _report(job_dir)
+    assert r["input"] == {"name": "images", "images": 12, "skipped": 0}
+    sfm = results["sfm"]
+    assert r["sfm"]["registered"] == sfm["registered"] == 12 and r["sfm"]["total"] == 12
+    assert r["sfm"]["matcher"] == sfm["matcher"] and r["sfm"]["mean_reproj_error_px"] == sfm["mean_reproj_error_px"]
+    text = (job_dir / "output" / "report.json").read_text()
+    assert str(job_dir.parent) not in text and '"/' not in text  # no absolute path anywhere (options.source ...)
+    html = (job_dir / "output" / "report.html").read_text()
+    assert f"registered <b>{sfm['registered']} of {sfm['total']}</b>" in html and "matching" in html
+    assert "Input <b>images</b>: 12 images" in html
+    selection = html[html.index("<h2>Model selection</h2>"):html.index("<h2>Held-out views</h2>")]
+    assert f"Water classified <b>{r['water']['water_type']}</b>" in selection
+    assert f"held-out PSNR ({r['metrics']['test']['n_views']} views)" in html
+    assert "the header's held-out PSNR" in html  # the curve's last point is related to the header, either way
+
+    copy = tmp_path / "job3dgs"
+    shutil.copytree(job_dir, copy, ignore=shutil.ignore_patterns("report.*", "speed_vs_error.png"))
+    ev = json.loads((copy / "evaluate.json").read_text())
+    atomic_write_json(copy / "evaluate.json", {**ev, "mode": "3dgs"})
+    sel = {"requested": "auto", "chosen": "3dgs", "reason": "probe: the water changes nothing measurable"}
+    (copy / "train" / "selection.json").write_text(json.dumps(sel))
+    (copy / "source.json").write_text(json.dumps({"name": "reef-dive.zip"}))
+    write_report(copy, copy / "output")
+    r3 = json.loads((copy / "output" / "report.json").read_text())
+    validate_report(r3)
+    assert r3["mode"] == "3dgs" and r3["input"]["name"] == "reef-dive.zip"
+    html3 = (copy / "output" / "report.html").read_text()
+    assert "No water was removed" in html3 and "probe: the water changes nothing measurable" in html3
+    assert "Held-out views: photo, model, ground truth" in html3
+    for claim in ("<figcaption>restored J", "restored J PSNR", "restored J vs true"):  # shown for dualphys
+        assert claim in html and claim not in html3, claim
