@@ -22,7 +22,7 @@ from pipeline.config import MediumConfig
 from pipeline.medium.estimate import measure_water
 from pipeline.medium.losses import LossWeights, basic_loss, loss_terms
 from pipeline.medium.model import Medium, MediumOutput
-from pipeline.scene.types import Scene, View, ray_length_factor
+from pipeline.scene.types import Scene, View, ray_length_factor, view_ranges
 from pipeline.train.quality import view_point_ranges
 
 log = logging.getLogger(__name__)
@@ -146,8 +146,6 @@ def view_transmission(scene: Scene, views: Sequence[View], beta_D: Sequence[floa
     sparse points it sees (``beta_D`` in 1/scene-unit: the measured water, or the starting one); 1 for a view
     that sees no point. The photo shows J·A, so its contrast, and every photometric gradient, is A times the
     scene's; densification divides by it (``Trainer.step``)."""
-    from pipeline.train.probe import view_ranges
-
     ranges = view_ranges(scene.points, views) if len(scene.points) else np.full(len(views), np.nan)
     bd = np.asarray(beta_D, dtype=np.float64)
     return [1.0 if not np.isfinite(r) else float(np.exp(-bd * r).mean()) for r in ranges]

@@ -10,6 +10,7 @@ Conventions (fixed for the whole project):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -105,3 +106,16 @@ def ray_length_factor(camera: Camera) -> np.ndarray:
     u = (np.arange(camera.width) + 0.5 - camera.cx) / camera.fx
     v = (np.arange(camera.height) + 0.5 - camera.cy) / camera.fy
     return np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)
+
+
+def view_ranges(points: np.ndarray, views: Sequence[View]) -> np.ndarray:
+    """Median distance from each view's camera to the sparse points it sees (inside its image, in front);
+    NaN for a view that sees none. [V]"""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.full(len(views), np.nan)
+    for k, v in enumerate(views):
+        u, w, _ = v.project(pts)  # NaN behind the camera: fails the test below
+        inside = (u >= 0) & (u < v.camera.width) & (w >= 0) & (w < v.camera.height)
+        if inside.any():
+            out[k] = float(np.median(np.linalg.norm(pts[inside] - v.center, axis=1)))
+    return out

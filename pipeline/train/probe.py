@@ -33,7 +33,7 @@ import torch
 
 from pipeline.config import TrainConfig, scaled_train_config, to_dict
 from pipeline.medium.estimate import MediumEstimate
-from pipeline.scene.types import Scene, View
+from pipeline.scene.types import Scene, View, view_ranges
 
 log = logging.getLogger(__name__)
 
@@ -92,19 +92,6 @@ class Selection:
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
-
-
-def view_ranges(points: np.ndarray, views: Sequence[View]) -> np.ndarray:
-    """Median distance from each view's camera to the sparse points it sees (inside its image, in front);
-    NaN for a view that sees none. [V]"""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    out = np.full(len(views), np.nan)
-    for k, v in enumerate(views):
-        u, w, _ = v.project(pts)  # NaN behind the camera: fails the test below
-        inside = (u >= 0) & (u < v.camera.width) & (w >= 0) & (w < v.camera.height)
-        if inside.any():
-            out[k] = float(np.median(np.linalg.norm(pts[inside] - v.center, axis=1)))
-    return out
 
 
 def holdout_split(views: Sequence[View], points: np.ndarray, fraction: float) -> tuple[list[int], list[int]]:
