@@ -24,7 +24,7 @@ from .idempotency import IdempotencyIndex
 from .jobs import JobOps
 from .settings import Settings, load_settings
 from .store import JobStore
-from .surveys import SurveyRegistry
+from .surveys.registry import SurveyRegistry
 
 log = logging.getLogger(__name__)
 

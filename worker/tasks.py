@@ -1,5 +1,5 @@
 """Thin Celery tasks: build the runtime from settings, call one function, report. The bodies live in
-``worker.runner`` (stages) and ``service.surveys`` (folder scans) and are tested without Celery."""
+``worker.runner`` (stages) and ``service.surveys.scan`` (folder scans) and are tested without Celery."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def run_stage(self, job_id: str, stage: str, run_id: str) -> str:
 @app.task(name=SCAN_SURVEYS_TASK, ignore_result=True)
 def scan_surveys() -> int:
     """Beat's tick: scan every survey whose interval has passed. Returns how many jobs were submitted."""
-    from service.surveys import scan
+    from service.surveys.scan import scan
 
     settings = load_settings()
     rt, registry, cfg = _survey_runtime(settings)
@@ -65,7 +65,8 @@ def scan_surveys() -> int:
 @app.task(name=SCAN_SURVEY_TASK, ignore_result=True)
 def scan_survey(survey_id: str) -> int:
     """Scan one survey now (``POST /v1/surveys/{id}/scan``)."""
-    from service.surveys import SurveyNotFound, scan
+    from service.surveys.registry import SurveyNotFound
+    from service.surveys.scan import scan
 
     settings = load_settings()
     rt, registry, cfg = _survey_runtime(settings)
@@ -81,7 +82,8 @@ def scan_survey(survey_id: str) -> int:
 
 
 def _survey_runtime(settings):
-    from service.surveys import ScanConfig, SurveyRegistry
+    from service.surveys.registry import SurveyRegistry
+    from service.surveys.scan import ScanConfig
 
     rt = Runtime.create(settings, app)
     registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,

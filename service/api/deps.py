@@ -15,7 +15,7 @@ from service.jobs import JobOps
 from service.manifest import Manifest
 from service.settings import Settings
 from service.store import JobNotFound
-from service.surveys import SurveyRegistry
+from service.surveys.registry import SurveyRegistry
 
 from .errors import api_error
 
