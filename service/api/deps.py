@@ -1,5 +1,6 @@
 """Request dependencies (``Annotated`` aliases): settings, the job operations, the authenticated owner, and a
-job the owner may see. The app keeps its long-lived objects in ``app.state.services`` (built by the lifespan)."""
+job the owner may see. The app keeps its long-lived objects in ``app.state.services`` (``service.app`` builds
+them from the composition root, ``service.compose``)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.compose import Components
 from service.coord import Coordinator
 from service.idempotency import IdempotencyIndex
 from service.jobs import JobOps
@@ -28,6 +30,10 @@ class Services:
     surveys: SurveyRegistry
     ingest_slots: object  # anyio.Semaphore, created inside the running loop
     idempotency: IdempotencyIndex
+
+    @classmethod
+    def of(cls, c: Components) -> Services:
+        return cls(c.settings, c.coord, c.jobs, c.surveys, ingest_slots=None, idempotency=c.idempotency)
 
 
 def get_services(request: Request) -> Services:
