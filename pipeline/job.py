@@ -28,9 +28,12 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .stages import config_hash, read_marker, run_marked
+
+if TYPE_CHECKING:
+    from .ingest import IngestConfig
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +87,8 @@ class StageContext:
     should_cancel: Callable[[], bool] = lambda: False
     device: str = "cpu"
     extra: dict[str, Any] = field(default_factory=dict)
+    # the deployment's ingest limits (archive limits, minimum image count); None: pipeline.ingest's defaults
+    ingest: IngestConfig | None = None
 
 
 # ---------------------------------------------------------------- the stages
@@ -92,7 +97,7 @@ class StageContext:
 def stage_ingest(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from .ingest import ingest
 
-    return ingest(opts.source, job).to_json()
+    return ingest(opts.source, job, ctx.ingest).to_json()
 
 
 def stage_sfm(job: Path, opts: JobOptions, ctx: StageContext) -> dict:

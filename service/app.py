@@ -11,7 +11,6 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-import anyio
 import redis
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
@@ -45,7 +44,7 @@ def create_app(settings: Settings | None = None, celery_app: TaskSender | None =
         swept = services.jobs.store.sweep_incomplete()
         if swept:
             log.info("removed %d abandoned upload folder(s)", swept)
-        services.ingest_slots = anyio.Semaphore(settings.ingest_concurrency)
+        services.intake.open()
         app.state.services = services
         yield
         services.coord.close()

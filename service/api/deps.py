@@ -12,7 +12,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.compose import Components
 from service.coord import Coordinator
-from service.idempotency import IdempotencyIndex
+from service.intake import UploadIntake
 from service.jobs import JobOps
 from service.manifest import Manifest
 from service.settings import Settings
@@ -28,12 +28,11 @@ class Services:
     coord: Coordinator
     jobs: JobOps
     surveys: SurveyRegistry
-    ingest_slots: object  # anyio.Semaphore, created inside the running loop
-    idempotency: IdempotencyIndex
+    intake: UploadIntake
 
     @classmethod
     def of(cls, c: Components) -> Services:
-        return cls(c.settings, c.coord, c.jobs, c.surveys, ingest_slots=None, idempotency=c.idempotency)
+        return cls(c.settings, c.coord, c.jobs, c.surveys, UploadIntake(c.settings, c.jobs, c.coord, c.idempotency))
 
 
 def get_services(request: Request) -> Services:
