@@ -28,12 +28,9 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .stages import config_hash, read_marker, run_marked
-
-if TYPE_CHECKING:
-    from .ingest import IngestConfig
 
 log = logging.getLogger(__name__)
 
@@ -87,8 +84,6 @@ class StageContext:
     should_cancel: Callable[[], bool] = lambda: False
     device: str = "cpu"
     extra: dict[str, Any] = field(default_factory=dict)
-    # the deployment's ingest limits (archive limits, minimum image count); None: pipeline.ingest's defaults
-    ingest: IngestConfig | None = None
 
 
 # ---------------------------------------------------------------- the stages
@@ -97,7 +92,7 @@ class StageContext:
 def stage_ingest(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from .ingest import ingest
 
-    return ingest(opts.source, job, ctx.ingest).to_json()
+    return ingest(opts.source, job).to_json()
 
 
 def stage_sfm(job: Path, opts: JobOptions, ctx: StageContext) -> dict:

@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.stages import atomic_write_json, marker_path
+from pipeline.job.markers import atomic_write_json, marker_path
 
 CACHE_NAME = ".artifacts.json"
 # artifact (file, or folder ending in "/") -> the stage whose marker makes it final

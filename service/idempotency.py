@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.stages import atomic_write_text
+from pipeline.job.markers import atomic_write_text
 
 from .coord import IDEMPOTENCY_TTL_S
 

@@ -34,7 +34,7 @@ from .uploads import UploadError, check_declared_length, receive_upload
 
 log = logging.getLogger(__name__)
 
-# HTTP status of each ingest refusal code (pipeline.archive / pipeline.ingest); anything else is 422.
+# HTTP status of each ingest refusal code (pipeline.ingest.archive / pipeline.ingest.intake); anything else is 422.
 REFUSAL_STATUS = {"not_an_archive": 415, "too_large": 413, "file_too_large": 413, "too_many_entries": 413,
                   "compression_bomb": 413}
 
@@ -148,11 +148,12 @@ class UploadIntake:
         self.coord.confirm_idempotency(owner, key, job_id)
 
     def _ingest(self, job_dir: Path, opts: dict) -> tuple[dict, float]:
-        """The pipeline's ingest stage (``pipeline.job.run_stage``) with this deployment's limits; its completion
+        """The pipeline's ingest stage (``pipeline.job.runner.run_stage``) with this deployment's limits; its completion
         marker makes the worker skip it. Refusals become UploadError."""
-        from pipeline.archive import ArchiveError
-        from pipeline.ingest import IngestConfig, IngestError
-        from pipeline.job import JobOptions, StageContext, run_stage
+        from pipeline.ingest.archive import ArchiveError
+        from pipeline.ingest.intake import IngestConfig, IngestError
+        from pipeline.job.options import JobOptions, StageContext
+        from pipeline.job.runner import run_stage
 
         s = self.settings
         t0 = time.time()

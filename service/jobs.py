@@ -32,7 +32,7 @@ def new_run_id() -> str:
 
 
 def pipeline_stages() -> tuple[str, ...]:
-    from pipeline.job import STAGES  # pipeline.job imports no torch; read at call time (stages may be added)
+    from pipeline.job.table import STAGES
 
     return tuple(STAGES)
 
@@ -59,7 +59,7 @@ class JobOps:
     def create(self, job_id: str, owner: str, options: dict, source: dict, *, survey_id: str | None = None,
                ingest: dict | None = None, ingest_seconds: float | None = None) -> Manifest:
         """Write job.json and the manifest of a job whose folder exists, then queue its first unfinished stage."""
-        from pipeline.stages import atomic_write_json
+        from pipeline.job.markers import atomic_write_json
 
         now = time.time()
         stages = pipeline_stages()
@@ -197,7 +197,8 @@ class JobOps:
             run.outcome, run.finished_at = "cancelled", time.time()
 
     def retry(self, job_id: str, owner: str) -> Manifest:
-        from pipeline.job import JobOptions, first_unfinished
+        from pipeline.job.options import JobOptions
+        from pipeline.job.runner import first_unfinished
 
         with self.coord.manifest_mutex(job_id):
             m = self.get(job_id, owner)

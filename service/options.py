@@ -16,7 +16,7 @@ def known_presets() -> list[str]:
 
 
 def known_modes() -> list[str]:
-    from pipeline.job import JOB_MODES
+    from pipeline.job.options import JOB_MODES
 
     return list(JOB_MODES)
 

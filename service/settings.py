@@ -12,7 +12,7 @@ from pathlib import Path
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from pipeline.archive import ArchiveLimits
+from pipeline.ingest.archive import ArchiveLimits
 
 MIN_KEY_LENGTH = 16
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from pipeline.stages import atomic_write_text
+from pipeline.job.markers import atomic_write_text
 
 from .manifest import MANIFEST_NAME, Manifest
 
@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 JOB_ID_RE = re.compile(r"^[a-z][a-z0-9]{7,63}$")
 LOG_NAME = "log.txt"
 INCOMPLETE_UPLOAD_AGE_S = 24 * 3600
-CHECKPOINT_RE = re.compile(r"checkpoint written: \S+ \(iteration (\d+)\)")  # pipeline.checkpoint's log line
+CHECKPOINT_RE = re.compile(r"checkpoint written: \S+ \(iteration (\d+)\)")  # pipeline.train.checkpoint's log line
 
 
 class JobNotFound(LookupError):

@@ -7,7 +7,7 @@
   it held comes back later (``Outcome.retry_after``): if the holder dies, its lock expires and the comeback
   (or the broker's redelivery of the holder's own message) takes over;
 - a stage already done in this run only makes sure the next one was sent (crash between the two);
-- the stage itself is ``pipeline.job.run_stage``: its completion marker makes a redelivered stage a no-op, and
+- the stage itself is ``pipeline.job.runner.run_stage``: its completion marker makes a redelivered stage a no-op, and
   training resumes from its checkpoint;
 - progress goes to the Redis cache (monotonic) and, every few seconds, to the manifest; cancel is a Redis flag
   checked by ``should_cancel``.
@@ -120,7 +120,8 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
     reporter = ProgressReporter(rt, job_id, run_id, stages, {s for s in stages if m.stage(s).status == "done"},
                                 floor=m.progress)
     canceller = CancelCheck(rt.coord, job_id, lock)
-    from pipeline.job import JobCancelled, JobOptions, StageContext, run_stage
+    from pipeline.job.options import JobCancelled, JobOptions, StageContext
+    from pipeline.job.runner import run_stage
 
     ctx = StageContext(on_progress=reporter, should_cancel=canceller, device=rt.settings.device)
     t0 = time.time()

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, Field, ValidationError
 
-from pipeline.stages import atomic_write_text
+from pipeline.job.markers import atomic_write_text
 
 from ..options import JobOptionsIn
 

@@ -68,7 +68,7 @@ def redis_client() -> Iterator[redis.Redis]:
 @pytest.fixture(scope="session")
 def scene_images(request) -> list[Path]:
     from pipeline.config import SynthConfig
-    from pipeline.scene.synth import generate_scene
+    from pipeline.synth.procedural import generate_scene
 
     tag = "-".join(str(v) for v in SCENE.values())
     out = Path(request.config.cache.mkdir(f"dualphys-service-scene-{tag}"))

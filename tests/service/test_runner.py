@@ -1,5 +1,5 @@
 """The stage task's body (``worker.runner.execute_stage``) called directly, with the real Redis, a job folder on
-disk, a dispatcher that only records what it would send, and ``pipeline.job.run_stage`` replaced by a fake:
+disk, a dispatcher that only records what it would send, and ``pipeline.job.runner.run_stage`` replaced by a fake:
 redelivery, locking, cancel, failure codes and crash limits, without Celery or torch."""
 
 from __future__ import annotations
@@ -9,13 +9,13 @@ import time
 
 import pytest
 
-import pipeline.job
-from pipeline.job import JobCancelled
+import pipeline.job.runner
+from pipeline.job.options import JobCancelled
 from service.compose import Components
 from service.store import new_job_id
 from worker.runner import execute_stage
 
-STAGES = pipeline.job.STAGES
+STAGES = pipeline.job.runner.STAGES
 
 
 class Calls(list):
@@ -40,7 +40,7 @@ def calls(monkeypatch):
         ctx.on_progress(stage, 1.0, "done")
         return {"stage": stage}, False
 
-    monkeypatch.setattr(pipeline.job, "run_stage", fake_run_stage)
+    monkeypatch.setattr(pipeline.job.runner, "run_stage", fake_run_stage)
     return record
 
 
@@ -122,7 +122,7 @@ def test_cancel_flag_stops_the_stage_and_the_chain(rt, calls) -> None:
 
 
 def test_failure_is_recorded_with_stage_and_code(rt, calls) -> None:
-    from pipeline.sfm import NoModelError
+    from pipeline.sfm.recipe import NoModelError
 
     job_id, run_id = new_job(rt)
 
@@ -159,7 +159,7 @@ def test_every_attempt_stays_in_the_stage_record(rt, calls) -> None:
     rec.status, rec.attempts, rec.started_at = "running", 1, time.time() - 5
     m.state, m.current_stage, m.message = "running", STAGES[0], "iteration 235/600"
     rt.store.write(m)
-    rt.store.append_log(job_id, "INFO pipeline.checkpoint: checkpoint written: train/latest.pt (iteration 120)")
+    rt.store.append_log(job_id, "INFO pipeline.train.checkpoint: checkpoint written: train/latest.pt (iteration 120)")
     view = rt.jobs.view(rt.store.read(job_id))  # nobody holds the run lock: the worker is gone
     assert view.worker_lost and view.state == "running"
     assert view.message.startswith(f"worker lost during {STAGES[0]} (attempt 1) at 'iteration 235/600'")
@@ -177,7 +177,7 @@ def test_retry_resumes_from_the_failed_stage(rt, calls) -> None:
     calls.behaviour[STAGES[1]] = lambda ctx: (_ for _ in ()).throw(RuntimeError("disk full"))
     assert execute_stage(rt, job_id, STAGES[1], run_id).status == "failed"
     # the real first_unfinished reads markers; the fake run_stage wrote none, so point it at the failed stage
-    import pipeline.job as pj
+    import pipeline.job.runner as pj
 
     orig = pj.first_unfinished
     pj.first_unfinished = lambda job, opts: STAGES[1]

@@ -178,8 +178,8 @@ def test_settings_require_keys_and_data_dir(monkeypatch) -> None:
 
 
 def test_error_codes_from_pipeline_exceptions() -> None:
-    from pipeline.ingest import IngestError
-    from pipeline.sfm import TooFewRegisteredError
+    from pipeline.ingest.intake import IngestError
+    from pipeline.sfm.recipe import TooFewRegisteredError
 
     assert error_code(IngestError("too_few_images", "x")) == "too_few_images"
     assert error_code(TooFewRegisteredError("x")) == "too_few_registered"
