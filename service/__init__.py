@@ -1,2 +1,3 @@
-"""The HTTP service: FastAPI app (``service.app:create_app``), settings, job store, uploads, surveys, and the
-embedded runner (``service.embedded.serve``). See docs/SERVICE.md."""
+"""The HTTP service: FastAPI app (``service.app:create_app``), the composition root (``service.compose``),
+settings, job store, uploads, surveys, and the embedded runner (``service.embedded.serve``). Imports nothing from
+``worker``: the worker's Celery app is handed in. See docs/SERVICE.md."""

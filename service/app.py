@@ -1,7 +1,8 @@
 """The FastAPI application factory: ``uvicorn --factory service.app:create_app``.
 
-Nothing happens at import: settings are read, Redis connected and the Celery producer built when the app is
-created; folders are made and half-finished uploads swept when it starts.
+Nothing happens at import: settings are read and the objects built (``service.compose``, with the Celery app
+that sends the tasks: the caller's, else a producer for the settings' broker) when the app is created; folders
+are made and half-finished uploads swept when it starts.
 """
 
 from __future__ import annotations
@@ -10,7 +11,6 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-import anyio
 import redis
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
@@ -18,13 +18,10 @@ from fastapi.responses import JSONResponse
 from .api.deps import Services
 from .api.errors import error_body, install_error_handlers
 from .api.routes import artifacts, health, jobs, surveys
-from .coord import Coordinator
-from .dispatch import Dispatcher
-from .idempotency import IdempotencyIndex
-from .jobs import JobOps
+from .broker import producer
+from .compose import compose
+from .dispatch import TaskSender
 from .settings import Settings, load_settings
-from .store import JobStore
-from .surveys import SurveyRegistry
 
 log = logging.getLogger(__name__)
 
@@ -34,21 +31,11 @@ Authenticate with `Authorization: Bearer <API key>`. Errors are JSON `{"error": 
 4xx/5xx status; the codes are listed in docs/SERVICE.md."""
 
 
-def build_services(settings: Settings) -> Services:
-    from worker.app import create_celery
-
-    store = JobStore(settings.jobs_dir)
-    coord = Coordinator.from_url(settings.redis_url, settings.redis_prefix)
-    dispatcher = Dispatcher(create_celery(settings), settings.train_queue)
-    registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,
-                              settings.survey_min_interval_s, settings.max_iterations, settings.survey_owner_roots)
-    return Services(settings, coord, JobOps(store, coord, dispatcher), registry, ingest_slots=None,
-                    idempotency=IdempotencyIndex(settings.data_dir / "idempotency"))
-
-
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None, celery_app: TaskSender | None = None) -> FastAPI:
+    """The API for ``settings`` (default: the environment). Stages and scans are queued through ``celery_app``
+    (default: ``service.broker.producer(settings)``, which sends to the queues ``worker.app`` consumes)."""
     settings = settings or load_settings()
-    services = build_services(settings)
+    services = Services.of(compose(settings, celery_app if celery_app is not None else producer(settings)))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -57,7 +44,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         swept = services.jobs.store.sweep_incomplete()
         if swept:
             log.info("removed %d abandoned upload folder(s)", swept)
-        services.ingest_slots = anyio.Semaphore(settings.ingest_concurrency)
+        services.intake.open()
         app.state.services = services
         yield
         services.coord.close()

@@ -1,8 +1,11 @@
-"""Sending stage tasks: one message per (job, stage, run). The API and the workers both send through this."""
+"""Sending stage tasks: one message per (job, stage, run). The API and the workers both send through this, each
+with its own Celery app (the API's producer from ``service.broker``, the worker's own app), handed in by
+whoever builds the dispatcher (``service.compose``)."""
 
 from __future__ import annotations
 
 import logging
+from typing import Any, Protocol
 
 from kombu.exceptions import KombuError
 from redis.exceptions import RedisError
@@ -19,8 +22,14 @@ class DispatchError(RuntimeError):
     """The broker did not take the message (Redis down)."""
 
 
+class TaskSender(Protocol):
+    """What the dispatcher sends through: a Celery app (``celery.Celery.send_task``)."""
+
+    def send_task(self, name: str, args: Any = None, **options: Any) -> Any: ...
+
+
 class Dispatcher:
-    def __init__(self, celery_app, train_queue: str = CPU_QUEUE):
+    def __init__(self, celery_app: TaskSender, train_queue: str = CPU_QUEUE):
         self.app = celery_app
         self.train_queue = train_queue
 

@@ -2,7 +2,7 @@
 (the API on create/cancel/retry, the worker on every stage transition and, throttled, on progress).
 
 States: ``queued`` -> ``running`` -> ``done`` | ``failed`` | ``cancelled``; ``failed`` and ``cancelled`` go
-back to ``queued`` on retry. The stage list comes from ``pipeline.job.table.STAGES`` when read, so stages added to
+back to ``queued`` on retry. The stage list comes from ``pipeline.job.runner.STAGES`` when read, so stages added to
 the pipeline later appear in old manifests as ``pending``.
 """
 
@@ -20,7 +20,7 @@ MANIFEST_NAME = "manifest.json"
 SCHEMA_VERSION = 1
 
 # Share of the 0-100 progress bar per stage (relative; normalised over the stages the pipeline has).
-# Stages not listed get DEFAULT_STAGE_WEIGHT, so a stage added to pipeline.job.table.STAGES needs no change here.
+# Stages not listed get DEFAULT_STAGE_WEIGHT, so a stage added to pipeline.job.runner.STAGES needs no change here.
 STAGE_WEIGHTS: dict[str, float] = {"ingest": 3, "sfm": 12, "classify": 2, "train": 70, "evaluate": 5, "export": 8}
 DEFAULT_STAGE_WEIGHT = 5.0
 

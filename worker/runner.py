@@ -22,11 +22,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from service.compose import Components
 from service.coord import Coordinator, RunLock
-from service.jobs import JobOps, pipeline_stages
+from service.jobs import pipeline_stages
 from service.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, overall_progress
 from service.redact import redact_paths
-from service.settings import Settings
 from service.store import LOG_NAME, JobNotFound, JobStore
 
 log = logging.getLogger(__name__)
@@ -45,25 +45,6 @@ class Outcome:
     next_stage: str | None = None  # the stage to queue after a stage that ran
 
 
-@dataclass
-class Runtime:
-    settings: Settings
-    store: JobStore
-    coord: Coordinator
-    jobs: JobOps
-
-    @classmethod
-    def create(cls, settings: Settings, celery_app) -> Runtime:
-        from service.dispatch import Dispatcher
-
-        store = JobStore(settings.jobs_dir)
-        coord = Coordinator.from_url(settings.redis_url, settings.redis_prefix)
-        return cls(settings, store, coord, JobOps(store, coord, Dispatcher(celery_app, settings.train_queue)))
-
-    def close(self) -> None:
-        self.coord.close()
-
-
 def error_code(exc: BaseException) -> str:
     """A stable code for a stage failure: the exception's own ``code``, else its class name for the pipeline's
     typed errors (``TooFewRegisteredError`` -> ``too_few_registered``), else ``stage_failed``."""
@@ -76,7 +57,7 @@ def error_code(exc: BaseException) -> str:
     return "stage_failed"
 
 
-def execute_stage(rt: Runtime, job_id: str, stage: str, run_id: str) -> Outcome:
+def execute_stage(rt: Components, job_id: str, stage: str, run_id: str) -> Outcome:
     try:
         m = rt.store.read(job_id)
     except JobNotFound:
@@ -93,7 +74,7 @@ def execute_stage(rt: Runtime, job_id: str, stage: str, run_id: str) -> Outcome:
         lock.release()
 
 
-def _execute_locked(rt: Runtime, job_id: str, stage: str, run_id: str, lock: RunLock) -> Outcome:
+def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: RunLock) -> Outcome:
     stages = pipeline_stages()
     if stage not in stages:
         return Outcome("stale", detail=f"unknown stage {stage!r}")
@@ -183,7 +164,7 @@ def _finish(m: Manifest, state: str, error: JobError | None, message: str) -> No
         run.outcome, run.finished_at = state, time.time()
 
 
-def _record_end(rt: Runtime, job_id: str, run_id: str, stage: str, status: str, error: JobError | None,
+def _record_end(rt: Components, job_id: str, run_id: str, stage: str, status: str, error: JobError | None,
                 message: str, seconds: float, skipped: bool = False, progress: float = 0.0) -> Outcome:
     """Write the stage's end into the manifest; for ``done`` also the job's end or hand-over to the next stage."""
     stages = pipeline_stages()
@@ -243,7 +224,7 @@ class ProgressReporter:
     """``StageContext.on_progress``: overall 0-100 from stage weights, never decreasing; cache often, manifest
     and job log now and then."""
 
-    def __init__(self, rt: Runtime, job_id: str, run_id: str, stages: tuple[str, ...], done: set[str],
+    def __init__(self, rt: Components, job_id: str, run_id: str, stages: tuple[str, ...], done: set[str],
                  floor: float):
         self.rt, self.job_id, self.run_id, self.stages, self.done = rt, job_id, run_id, stages, done
         self.value = floor

@@ -1,5 +1,6 @@
-"""Thin Celery tasks: build the runtime from settings, call one function, report. The bodies live in
-``worker.runner`` (stages) and ``service.surveys`` (folder scans) and are tested without Celery."""
+"""Thin Celery tasks: build the components from settings (``service.compose``, with this worker's Celery app),
+call one function, report. The bodies live in ``worker.runner`` (stages) and ``service.surveys.scan`` (folder
+scans) and are tested without Celery."""
 
 from __future__ import annotations
 
@@ -8,13 +9,14 @@ import time
 
 from celery.signals import worker_ready, worker_shutdown
 
-from service.dispatch import RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK, Dispatcher
+from service.compose import compose
+from service.dispatch import RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK
 from service.settings import load_settings
 
 from .app import app
 from .heartbeat import on_worker_ready, on_worker_shutdown
 from .process import prepare_stage_process
-from .runner import Runtime, execute_stage
+from .runner import execute_stage
 
 log = logging.getLogger(__name__)
 
@@ -28,35 +30,32 @@ worker_shutdown.connect(on_worker_shutdown, weak=False)
 def run_stage(self, job_id: str, stage: str, run_id: str) -> str:
     """Run ``stage`` of run ``run_id`` of job ``job_id`` (idempotent; see worker.runner)."""
     prepare_stage_process()
-    settings = load_settings()
-    rt = Runtime.create(settings, self.app)
+    rt = compose(load_settings(), self.app)
     try:
         out = execute_stage(rt, job_id, stage, run_id)
     finally:
         rt.close()
     log.info("job %s stage %s: %s %s", job_id, stage, out.status, out.detail)
     if out.retry_after is not None:
-        raise self.retry(countdown=out.retry_after,
-                         queue=Dispatcher(self.app, settings.train_queue).queue_for(stage))
+        raise self.retry(countdown=out.retry_after, queue=rt.jobs.dispatcher.queue_for(stage))
     return out.status
 
 
 @app.task(name=SCAN_SURVEYS_TASK, ignore_result=True)
 def scan_surveys() -> int:
     """Beat's tick: scan every survey whose interval has passed. Returns how many jobs were submitted."""
-    from service.surveys import scan
+    from service.surveys.scan import scan
 
-    settings = load_settings()
-    rt, registry, cfg = _survey_runtime(settings)
+    rt = compose(load_settings(), app)
     n = 0
     try:
         now = time.time()
-        for survey in registry.all():
-            if now - registry.state(survey.id).last_scan_at < survey.interval_s:
+        for survey in rt.surveys.all():
+            if now - rt.surveys.state(survey.id).last_scan_at < survey.interval_s:
                 continue
             with rt.coord.scan_lock(survey.id) as got:
                 if got:
-                    n += len(scan(registry, survey, rt.jobs, cfg))
+                    n += len(scan(rt.surveys, survey, rt.jobs, rt.scan_config))
     finally:
         rt.close()
     return n
@@ -65,27 +64,16 @@ def scan_surveys() -> int:
 @app.task(name=SCAN_SURVEY_TASK, ignore_result=True)
 def scan_survey(survey_id: str) -> int:
     """Scan one survey now (``POST /v1/surveys/{id}/scan``)."""
-    from service.surveys import SurveyNotFound, scan
+    from service.surveys.registry import SurveyNotFound
+    from service.surveys.scan import scan
 
-    settings = load_settings()
-    rt, registry, cfg = _survey_runtime(settings)
+    rt = compose(load_settings(), app)
     try:
         try:
-            survey = registry.get(survey_id)
+            survey = rt.surveys.get(survey_id)
         except SurveyNotFound:
             return 0
         with rt.coord.scan_lock(survey.id) as got:
-            return len(scan(registry, survey, rt.jobs, cfg)) if got else 0
+            return len(scan(rt.surveys, survey, rt.jobs, rt.scan_config)) if got else 0
     finally:
         rt.close()
-
-
-def _survey_runtime(settings):
-    from service.surveys import ScanConfig, SurveyRegistry
-
-    rt = Runtime.create(settings, app)
-    registry = SurveyRegistry(settings.surveys_dir, settings.survey_roots, settings.surveys_file,
-                              settings.survey_min_interval_s, settings.max_iterations, settings.survey_owner_roots)
-    cfg = ScanConfig(min_images=max(settings.min_images, settings.survey_min_images), settle_s=settings.survey_settle_s,
-                     gap_s=settings.survey_gap_s)
-    return rt, registry, cfg

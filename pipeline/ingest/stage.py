@@ -10,4 +10,4 @@ from pipeline.job.options import JobOptions, StageContext
 def stage_ingest(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.ingest.intake import ingest
 
-    return ingest(opts.source, job).to_json()
+    return ingest(opts.source, job, ctx.ingest).to_json()

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from pipeline.ingest.intake import IngestConfig
 
 
 class JobCancelled(RuntimeError):
@@ -54,3 +57,5 @@ class StageContext:
     should_cancel: Callable[[], bool] = lambda: False
     device: str = "cpu"
     extra: dict[str, Any] = field(default_factory=dict)
+    # the deployment's ingest limits (archive limits, minimum image count); None: pipeline.ingest's defaults
+    ingest: IngestConfig | None = None

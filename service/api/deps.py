@@ -1,5 +1,6 @@
 """Request dependencies (``Annotated`` aliases): settings, the job operations, the authenticated owner, and a
-job the owner may see. The app keeps its long-lived objects in ``app.state.services`` (built by the lifespan)."""
+job the owner may see. The app keeps its long-lived objects in ``app.state.services`` (``service.app`` builds
+them from the composition root, ``service.compose``)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,14 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.compose import Components
 from service.coord import Coordinator
-from service.idempotency import IdempotencyIndex
+from service.intake import UploadIntake
 from service.jobs import JobOps
 from service.manifest import Manifest
 from service.settings import Settings
 from service.store import JobNotFound
-from service.surveys import SurveyRegistry
+from service.surveys.registry import SurveyRegistry
 
 from .errors import api_error
 
@@ -26,8 +28,11 @@ class Services:
     coord: Coordinator
     jobs: JobOps
     surveys: SurveyRegistry
-    ingest_slots: object  # anyio.Semaphore, created inside the running loop
-    idempotency: IdempotencyIndex
+    intake: UploadIntake
+
+    @classmethod
+    def of(cls, c: Components) -> Services:
+        return cls(c.settings, c.coord, c.jobs, c.surveys, UploadIntake(c.settings, c.jobs, c.coord, c.idempotency))
 
 
 def get_services(request: Request) -> Services:

@@ -110,17 +110,13 @@ def api(tmp_path, unit_prefix):
 
 @pytest.fixture()
 def rt(tmp_path, unit_prefix):
-    """A worker runtime (real Redis, a job store in tmp_path) whose dispatcher only records."""
-    from service.coord import Coordinator
-    from service.jobs import JobOps
-    from service.store import JobStore
-    from worker.runner import Runtime
+    """The worker's components (real Redis, a job store in tmp_path) whose dispatcher only records."""
+    from service.compose import compose
 
     settings = make_settings(tmp_path, unit_prefix, lock_ttl_s=3, max_stage_attempts=2)
-    store = JobStore(settings.jobs_dir)
-    store.ensure()
-    coord = Coordinator.from_url(REDIS_URL, unit_prefix)
-    runtime = Runtime(settings, store, coord, JobOps(store, coord, RecordingDispatcher()))
+    runtime = compose(settings, celery_app=None)
+    runtime.jobs.dispatcher = RecordingDispatcher()
+    runtime.store.ensure()
     yield runtime
     runtime.close()
 

@@ -224,3 +224,19 @@ def test_without_redis_the_api_says_so_and_writes_nothing(tmp_path, good_zip) ->
         r = create(client, "alice", good_zip)
         assert r.status_code == 503 and r.json()["error"]["code"] in ("redis_unavailable", "broker_unavailable")
         assert not any(settings.jobs_dir.iterdir())
+
+
+@pytest.mark.parametrize("limits, code", [({"min_images": 5}, "too_few_images"),
+                                          ({"archive_max_entries": 3}, "too_many_entries")])
+def test_the_deployments_upload_limits_reach_the_ingest_stage(tmp_path, unit_prefix, good_zip, limits, code) -> None:
+    """The API runs the ingest stage with this deployment's ``min_images`` and archive limits (4 images here)."""
+    from fastapi.testclient import TestClient
+    from svc_helpers import make_settings
+
+    from service.app import create_app
+
+    (tmp_path / "surveys-root").mkdir()
+    settings = make_settings(tmp_path, unit_prefix, **limits)
+    with TestClient(create_app(settings)) as client:
+        assert_error(create(client, "alice", good_zip), 413 if code == "too_many_entries" else 422, code)
+        assert not any(settings.jobs_dir.iterdir())

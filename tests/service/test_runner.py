@@ -11,8 +11,9 @@ import pytest
 
 import pipeline.job.runner
 from pipeline.job.options import JobCancelled
+from service.compose import Components
 from service.store import new_job_id
-from worker.runner import Runtime, execute_stage
+from worker.runner import execute_stage
 
 STAGES = pipeline.job.runner.STAGES
 
@@ -43,7 +44,7 @@ def calls(monkeypatch):
     return record
 
 
-def new_job(rt: Runtime) -> tuple[str, str]:
+def new_job(rt: Components) -> tuple[str, str]:
     job_id = new_job_id()
     rt.store.job_dir(job_id).mkdir()
     m = rt.jobs.create(job_id, "alice", {"source": "/nowhere"}, {"kind": "upload"})

@@ -15,16 +15,10 @@ import OpenImageIO as oiio
 import pytest
 from svc_helpers import small_jpegs
 
-from service.surveys import (
-    ImageFile,
-    ScanConfig,
-    SurveyError,
-    SurveyOptions,
-    SurveyRegistry,
-    read_exif_time,
-    scan,
-    with_exif_times,
-)
+from service.surveys.exif import read_exif_time
+from service.surveys.registry import SurveyError, SurveyOptions, SurveyRegistry
+from service.surveys.scan import ScanConfig, scan
+from service.surveys.sets import ImageFile, with_exif_times
 
 
 def _registry(rt) -> SurveyRegistry:

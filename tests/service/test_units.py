@@ -15,7 +15,8 @@ from pydantic import ValidationError
 
 from service.manifest import overall_progress, stage_weights
 from service.store import JobStore
-from service.surveys import ImageFile, group_images, list_images, resolve_under_roots, set_hash
+from service.surveys.registry import resolve_under_roots
+from service.surveys.sets import ImageFile, group_images, list_images, set_hash
 from service.uploads import UploadError, receive_upload
 from worker.runner import error_code
 
@@ -80,7 +81,7 @@ def test_list_images_skips_links_hidden_and_non_images(tmp_path: Path) -> None:
 
 
 def test_survey_paths_must_resolve_under_a_root(tmp_path: Path) -> None:
-    from service.surveys import SurveyError
+    from service.surveys.registry import SurveyError
 
     root = tmp_path / "root"
     (root / "ok").mkdir(parents=True)

@@ -9,7 +9,7 @@ from service.api.errors import api_error
 from service.api.schemas.requests import SurveyCreate
 from service.api.schemas.responses import ErrorOut, ScanQueued, SubmittedSetOut, SurveyList, SurveyOut
 from service.dispatch import DispatchError
-from service.surveys import Survey, SurveyError, SurveyNotFound, SurveyRegistry
+from service.surveys.registry import Survey, SurveyError, SurveyNotFound, SurveyRegistry
 
 router = APIRouter(prefix="/v1/surveys", tags=["surveys"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 409, 422, 503)}

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.options import JobOptionsIn
-from service.surveys import SurveyOptions
+from service.surveys.registry import SurveyOptions
 
 
 class JobCreateOptions(JobOptionsIn):
