@@ -34,7 +34,11 @@ class Dispatcher:
         self.train_queue = train_queue
 
     def queue_for(self, stage: str) -> str:
-        return self.train_queue if stage == "train" else CPU_QUEUE
+        """The stage table's queue (``pipeline.job.table``): training on this deployment's train queue (cpu or
+        gpu), every other stage on the cpu queue."""
+        from pipeline.job.table import stage as table_stage
+
+        return self.train_queue if table_stage(stage).queue == "train" else CPU_QUEUE
 
     def send_stage(self, job_id: str, stage: str, run_id: str) -> str:
         try:

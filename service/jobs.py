@@ -70,7 +70,7 @@ class JobOps:
         if ingest is not None:  # the API validated the upload by running the ingest stage itself
             m.stages["ingest"] = StageRecord(status="done", started_at=now - (ingest_seconds or 0), finished_at=now,
                                              seconds=ingest_seconds, attempts=1)
-        first = self.first_unfinished(m)
+        first = m.next_stage(stages)
         m.runs.append(RunRecord(run_id=run_id, from_stage=first, queued_at=now))
         m.progress = self._done_progress(m)
         atomic_write_json(self.store.job_dir(job_id) / "job.json", options)
@@ -86,9 +86,6 @@ class JobOps:
                                           f"{len(ingest.get('ignored', []))} non-image files ignored, "
                                           f"undecodable files skipped: {skipped}")
         return self.dispatch(job_id, run_id, first)
-
-    def first_unfinished(self, m: Manifest) -> str | None:
-        return next((s for s in pipeline_stages() if m.stage(s).status != "done"), None)
 
     def _done_progress(self, m: Manifest) -> float:
         from .manifest import overall_progress

@@ -19,9 +19,7 @@ TERMINAL_STATES: frozenset[str] = frozenset({"done", "failed", "cancelled"})
 MANIFEST_NAME = "manifest.json"
 SCHEMA_VERSION = 1
 
-# Share of the 0-100 progress bar per stage (relative; normalised over the stages the pipeline has).
-# Stages not listed get DEFAULT_STAGE_WEIGHT, so a stage added to pipeline.job.runner.STAGES needs no change here.
-STAGE_WEIGHTS: dict[str, float] = {"ingest": 3, "sfm": 12, "classify": 2, "train": 70, "evaluate": 5, "export": 8}
+# A stage an old manifest names that the pipeline no longer has weighs this much of the progress bar.
 DEFAULT_STAGE_WEIGHT = 5.0
 
 
@@ -85,6 +83,14 @@ class Manifest(BaseModel):
     def stage(self, name: str) -> StageRecord:
         return self.stages.setdefault(name, StageRecord())
 
+    def next_stage(self, stages: tuple[str, ...]) -> str | None:
+        """The first of ``stages`` (the pipeline's, in order) this manifest does not record as done: what the
+        job runs next. Normally the one after the stage that just finished; if a new version of the pipeline
+        inserted a stage while the job ran, that one runs too instead of leaving a hole in a finished job.
+        (What a *retry* starts from is the disk's word instead: ``pipeline.job.runner.first_unfinished``, which
+        checks each stage's completion marker against the job's options.)"""
+        return next((s for s in stages if self.stage(s).status != "done"), None)
+
     def touch(self) -> None:
         self.updated_at = time.time()
 
@@ -94,7 +100,11 @@ class Manifest(BaseModel):
 
 
 def stage_weights(stages: tuple[str, ...]) -> dict[str, float]:
-    w = {s: STAGE_WEIGHTS.get(s, DEFAULT_STAGE_WEIGHT) for s in stages}
+    """Each stage's share of the 0-100 progress bar: its weight in the stage table (``pipeline.job.table``),
+    normalised over ``stages``."""
+    from pipeline.job.table import BY_NAME
+
+    w = {s: BY_NAME[s].weight if s in BY_NAME else DEFAULT_STAGE_WEIGHT for s in stages}
     total = sum(w.values()) or 1.0
     return {s: 100.0 * v / total for s, v in w.items()}
 

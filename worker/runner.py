@@ -88,7 +88,7 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
             return Outcome("stale", detail="run superseded or finished")
         rec = m.stage(stage)
         if rec.status == "done":
-            nxt = next_stage(m, stages)
+            nxt = m.next_stage(stages)
             pending_next = nxt is not None and nxt not in m.dispatched
         else:
             if m.cancel_requested or rt.coord.cancel_requested(job_id):
@@ -149,14 +149,6 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
     return out
 
 
-def next_stage(m: Manifest, stages: tuple[str, ...]) -> str | None:
-    """The first stage of the pipeline (as this worker knows it) that is not done in the manifest.
-
-    Normally the one after the stage that just finished; if a new version of the pipeline inserted a stage
-    while the job was running, the inserted stage is run too instead of leaving a hole in a finished job."""
-    return next((s for s in stages if m.stage(s).status != "done"), None)
-
-
 def _finish(m: Manifest, state: str, error: JobError | None, message: str) -> None:
     m.state, m.error, m.message, m.cancel_requested = state, error, message, False
     run = m.current_run
@@ -188,7 +180,7 @@ def _record_end(rt: Components, job_id: str, run_id: str, stage: str, status: st
             _finish(m, "cancelled", None, f"cancelled during {stage}")
         elif status == "failed":
             _finish(m, "failed", error, message)
-        elif (nxt := next_stage(m, stages)) is None:
+        elif (nxt := m.next_stage(stages)) is None:
             if m.state != "done":
                 m.completed_runs += 1
             _finish(m, "done", None, "finished")

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
+from ..jobs import pipeline_stages
 from ..manifest import Manifest
 from ..safe_fs import FolderTree
 from .registry import SubmittedSet, Survey, SurveyError, SurveyRegistry, SurveyState, WaitingSet
@@ -134,7 +135,7 @@ def _requeue_if_never_sent(jobs, job_id: str) -> None:
     m: Manifest = store.read(job_id)
     if m.state == "queued" and not m.dispatched and time.time() - m.created_at > 30:
         log.warning("survey job %s was never queued; queueing it now", job_id)
-        jobs.dispatch(job_id, m.run_id, jobs.first_unfinished(m))
+        jobs.dispatch(job_id, m.run_id, m.next_stage(pipeline_stages()))
 
 
 def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
