@@ -55,6 +55,7 @@ from typing import BinaryIO
 
 from pydantic import BaseModel, Field, ValidationError
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.markers import atomic_write_text
 
 from .manifest import Manifest
@@ -701,7 +702,7 @@ def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
     root = Path(survey.path)
     try:
         for f in image_set.files:
-            dst = staging / "input" / f.rel
+            dst = JobLayout(staging).input / f.rel  # the staging folder becomes the job folder
             dst.parent.mkdir(parents=True, exist_ok=True)
             src = tree.open(f.rel) if tree is not None else open(root / f.rel, "rb")
             if _copy_hashed(src, dst) != digests[f.rel][2]:
@@ -710,7 +711,7 @@ def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    opts = {**survey.options.model_dump(), "source": str(final / "input")}
+    opts = {**survey.options.model_dump(), "source": str(JobLayout(final).input)}
     source = {"kind": "survey", "survey_id": survey.id, "set": image_set.name, "set_hash": h,
               "images": len(image_set.files)}
     jobs.create(job_id, survey.owner, opts, source, survey_id=survey.id)

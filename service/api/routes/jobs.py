@@ -12,6 +12,7 @@ import anyio
 from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import ValidationError
 
+from pipeline.job.layout import JobLayout
 from service.api.deps import JobDep, JobsDep, OwnerDep, ServicesDep
 from service.api.errors import api_error
 from service.api.schemas.requests import JobCreateOptions
@@ -94,7 +95,7 @@ async def create_job(
             raise UploadError(507, "insufficient_storage", "the server's data disk is too full for this upload")
         job_dir.mkdir(parents=True)
         up = await receive_upload(request.stream(), request.headers.get("content-type", ""),
-                                  dict(request.query_params), job_dir / "input" / "archive",
+                                  dict(request.query_params), JobLayout(job_dir).upload,
                                   settings.max_upload_bytes)
         fields = {k: v for k, v in up.fields.items() if k != "filename"}
         try:
