@@ -32,13 +32,15 @@ def main() -> None:
     args = ap.parse_args()
 
     from pipeline.config import SynthConfig
+    from pipeline.job.layout import JobLayout
     from pipeline.job.options import JobOptions
     from pipeline.job.runner import run_job
     from pipeline.synth.procedural import generate_scene
+    from pipeline.synth.water import TRUE_WATER_FILE
 
     w, h = (int(x) for x in args.size.split("x"))
     scene = args.out / f"scene_{args.views}_{args.size}"
-    if not (scene / "water.json").exists():
+    if not (scene / TRUE_WATER_FILE).exists():  # not generated yet (its true water marks a generated scene)
         generate_scene(SynthConfig(views=args.views, width=w, height=h, preset="medium", seed=0), scene)
     rows = []
     for preset in args.presets:
@@ -46,7 +48,7 @@ def main() -> None:
         t0 = time.perf_counter()
         run_job(job, JobOptions(source=str(scene / "images"), preset=preset, mode=args.mode, max_width=1600))
         wall = time.perf_counter() - t0
-        rep = json.loads((job / "output" / "report.json").read_text())
+        rep = json.loads(JobLayout(job).report_json.read_text())
         rest = rep.get("restoration") or {}
         rows.append({"preset": preset, "mode": rep["mode"], "iterations": rep["model"].get("iterations"),
                      "wall_s": round(wall, 1), "train_s": rep["timings"]["stages_s"].get("train"),

@@ -95,6 +95,7 @@ def _db(x: float | None) -> str:
 def cmd_demo(args: argparse.Namespace) -> int:
     """Generate a scene with known water and run the job on it end to end."""
     from pipeline.config import SynthConfig
+    from pipeline.job.layout import JobLayout
     from pipeline.job.options import JobOptions, StageContext
     from pipeline.job.runner import run_job
     from pipeline.scene.align import align_to_reference
@@ -116,10 +117,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
             last["stage"] = stage
 
     opts = JobOptions(source=str(scene_dir / "images"), mode="dualphys", iterations=args.iterations)
-    res = run_job(out / "job", opts, StageContext(on_progress=progress))
-    print(f"[2/3] job done in {time.perf_counter() - t0:.0f} s -> {out / 'job'}")
+    job = JobLayout(out / "job")
+    res = run_job(job.root, opts, StageContext(on_progress=progress))
+    print(f"[2/3] job done in {time.perf_counter() - t0:.0f} s -> {job.root}")
     sfm, water, train = res["sfm"], res["classify"], res["train"]
-    errs = align_to_reference(load_scene(out / "job" / "scene"), load_scene(scene_dir))
+    errs = align_to_reference(load_scene(job.scene), load_scene(scene_dir))
     coef = train.get("medium", {})
     truth = WATER_PRESETS[synth.preset]
     print(f"[3/3] SfM {sfm['registered']}/{sfm['total']} registered ({sfm['mean_reproj_error_px']:.2f} px; "
@@ -140,14 +142,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
         metric = [b / errs["scale"] for b in coef["beta_D"]]
         print("      recovered beta_D (1/m, via the alignment's scale): "
               + ", ".join(f"{c} {m:.3f} (true {t:.3f})" for c, m, t in zip("RGB", metric, truth.beta_D)))
-    print(f"      outputs: {out / 'job' / 'output'} (reconstruction.ply, restored/, with_water/, attenuation/, "
-          f"backscatter/, depth/)")
-    print(f"      report: {(out / 'job' / 'output' / 'report.html').resolve()}")
-    summary = {"scene": str(scene_dir), "job": str(out / "job"), "alignment": errs, "results": res,
+    print(f"      outputs: {job.output} ({job.ply.name}, restored/, with_water/, attenuation/, backscatter/, depth/)")
+    print(f"      report: {job.report_html.resolve()}")
+    summary = {"scene": str(scene_dir), "job": str(job.root), "alignment": errs, "results": res,
                "seconds": round(time.perf_counter() - t0, 1)}
     (out / "demo.json").write_text(json.dumps(summary, indent=2, default=str))
-    print(json.dumps({"demo": str(out / "demo.json"), "ply": str(out / "job" / "output" / "reconstruction.ply"),
-                      "report": str(out / "job" / "output" / "report.html")}))
+    print(json.dumps({"demo": str(out / "demo.json"), "ply": str(job.ply), "report": str(job.report_html)}))
     return 0
 
 
@@ -158,6 +158,7 @@ def _fail(command: str, message: str) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """The whole job in this process, with progress bars; finished stages (matching markers) are skipped."""
+    from pipeline.job.layout import JobLayout
     from pipeline.job.options import JobOptions, StageContext
     from pipeline.job.progress import StageProgress
     from pipeline.job.runner import run_job
@@ -186,14 +187,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     bar.close()
     train = res.get("train", {})
     test = res.get("evaluate", {}).get("metrics", {}).get("test", {})
-    selection = out / "train" / "selection.json"
+    selection = JobLayout(out).selection
     print(f"done in {time.perf_counter() - t0:.0f} s; skipped (already done): {', '.join(bar.skipped) or 'none'}")
     if selection.exists():
         sel = json.loads(selection.read_text())
         print(f"mode auto chose {sel['chosen']}: {sel['reason']}")
     psnr = "n/a" if test.get("psnr") is None else f"{test['psnr']:.2f} dB"
     print(f"mode {train.get('mode', opts.mode)}, {train.get('n_gaussians', '?')} Gaussians; held-out PSNR with "
-          f"water {psnr}; outputs in {out / 'output'}")
+          f"water {psnr}; outputs in {JobLayout(out).output}")
     quality = train.get("quality") or {}
     if quality:
         pc = quality.get("point_coverage_min")
@@ -203,7 +204,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         for w in quality.get("warnings", []):
             print(f"warning: {w}", file=sys.stderr)
     print(json.dumps({"job": str(out), "skipped": bar.skipped, "mode": train.get("mode"),
-                      "test_psnr": test.get("psnr"), "report": str(out / "output" / "report.html"),
+                      "test_psnr": test.get("psnr"), "report": str(JobLayout(out).report_html),
                       "seconds": round(time.perf_counter() - t0, 1)}))
     return 0
 

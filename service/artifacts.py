@@ -1,8 +1,10 @@
 """A job's downloadable results: which files, their sizes and SHA-256, and a streamed zip of them all.
 
 A file is listed only once the stage that writes it has its completion marker (so a half-written file is
-never offered): ``ingest.json`` after ingest, ``train/train.json`` after train, everything under ``output/``
-after export. Checksums are cached in ``<job>/.artifacts.json`` keyed by size and mtime.
+never offered): what each stage ``publishes`` in :data:`pipeline.job.table.STAGE_TABLE` (ingest's result after
+ingest, train's after train, everything in the output folder after export; the paths in
+:class:`pipeline.job.layout.JobLayout`). Checksums are cached in ``JobLayout.artifacts_cache`` keyed by size and
+mtime.
 """
 
 from __future__ import annotations
@@ -16,11 +18,13 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.job.markers import atomic_write_json, marker_path
+from pipeline.job.layout import JobLayout
+from pipeline.job.markers import atomic_write_json
+from pipeline.job.table import STAGE_TABLE
 
-CACHE_NAME = ".artifacts.json"
-# artifact (file, or folder ending in "/") -> the stage whose marker makes it final
-ARTIFACT_SOURCES: dict[str, str] = {"ingest.json": "ingest", "train/train.json": "train", "output/": "export"}
+# artifact (a JobLayout attribute: a file, or a folder whose files are all listed) -> the stage whose marker
+# makes it final
+ARTIFACT_SOURCES: dict[str, str] = {name: s.name for s in STAGE_TABLE for name in s.publishes}
 STORED_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".webp", ".zip", ".gz", ".exr", ".jxl"})
 
 
@@ -34,15 +38,15 @@ class Artifact:
 
 def _candidates(job_dir: Path) -> list[Path]:
     out: list[Path] = []
+    layout = JobLayout(job_dir)
     for name, stage in ARTIFACT_SOURCES.items():
-        if not marker_path(job_dir, stage).is_file():
+        if not layout.marker(stage).is_file():
             continue
-        p = job_dir / name
-        if name.endswith("/"):
-            if p.is_dir():
-                out += sorted(f for f in p.rglob("*")
-                              if f.is_file() and not f.is_symlink()
-                              and not any(part.startswith(".") for part in f.relative_to(job_dir).parts))
+        p = getattr(layout, name)
+        if p.is_dir():
+            out += sorted(f for f in p.rglob("*")
+                          if f.is_file() and not f.is_symlink()
+                          and not any(part.startswith(".") for part in f.relative_to(job_dir).parts))
         elif p.is_file() and not p.is_symlink():
             out.append(p)
     return out
@@ -57,7 +61,7 @@ def sha256_file(path: Path) -> str:
 
 
 def list_artifacts(job_dir: Path) -> list[Artifact]:
-    cache_path = job_dir / CACHE_NAME
+    cache_path = JobLayout(job_dir).artifacts_cache
     try:
         cache = json.loads(cache_path.read_text())
     except (FileNotFoundError, json.JSONDecodeError):

@@ -21,6 +21,8 @@ from pathlib import Path
 import anyio
 from pydantic import ValidationError
 
+from pipeline.job.layout import JobLayout
+
 from .coord import Coordinator
 from .dispatch import DispatchError
 from .idempotency import IdempotencyIndex
@@ -89,7 +91,7 @@ class UploadIntake:
             if free - (declared or 0) < settings.min_free_bytes:
                 raise UploadError(507, "insufficient_storage", "the server's data disk is too full for this upload")
             job_dir.mkdir(parents=True)
-            up = await receive_upload(req.body, req.content_type, req.query, job_dir / "input" / "archive",
+            up = await receive_upload(req.body, req.content_type, req.query, JobLayout(job_dir).upload,
                                       settings.max_upload_bytes)
             options = self._options({k: v for k, v in up.fields.items() if k != "filename"})
             if first is not None:  # a repeat: the same request gets the first job, another request an error

@@ -73,9 +73,9 @@ class JobOps:
         first = m.next_stage(stages)
         m.runs.append(RunRecord(run_id=run_id, from_stage=first, queued_at=now))
         m.progress = self._done_progress(m)
-        atomic_write_json(self.store.job_dir(job_id) / "job.json", options)
+        atomic_write_json(self.store.layout(job_id).options, options)
         # the input's name as the client knows it (the report shows it; the folder only has input/archive)
-        atomic_write_json(self.store.job_dir(job_id) / "source.json",
+        atomic_write_json(self.store.layout(job_id).source_name,
                           {"name": source.get("filename") or source.get("set") or source.get("kind")})
         self.store.write(m)
         self.store.append_log(job_id, f"INFO service: job created by {owner} ({source.get('kind')}); "

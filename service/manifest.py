@@ -1,5 +1,6 @@
-"""The job manifest (``<job>/manifest.json``): the truth about a job, written atomically by whoever changes it
-(the API on create/cancel/retry, the worker on every stage transition and, throttled, on progress).
+"""The job manifest (``JobLayout.manifest`` in the job folder): the truth about a job, written atomically by
+whoever changes it (the API on create/cancel/retry, the worker on every stage transition and, throttled, on
+progress).
 
 States: ``queued`` -> ``running`` -> ``done`` | ``failed`` | ``cancelled``; ``failed`` and ``cancelled`` go
 back to ``queued`` on retry. The stage list comes from ``pipeline.job.runner.STAGES`` when read, so stages added to
@@ -16,7 +17,6 @@ from pydantic import BaseModel, Field
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
 StageStatus = Literal["pending", "running", "done", "failed", "cancelled"]
 TERMINAL_STATES: frozenset[str] = frozenset({"done", "failed", "cancelled"})
-MANIFEST_NAME = "manifest.json"
 SCHEMA_VERSION = 1
 
 # A stage an old manifest names that the pipeline no longer has weighs this much of the progress bar.

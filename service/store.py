@@ -1,7 +1,7 @@
-"""Job folders on disk: ``<data>/jobs/<id>/`` holding ``manifest.json`` (the truth, atomic writes), ``job.json``
-(the pipeline options), ``log.txt`` (append-only), ``input/`` (the uploaded archive or a survey set's copied
-images) and everything the stages write. A folder without a manifest is an upload still streaming (or one
-whose API process died mid-upload; swept after a day).
+"""Job folders on disk: ``<data>/jobs/<id>/`` holding the manifest (the truth, atomic writes), the pipeline
+options, the log (append-only), the input (the uploaded archive or a survey set's copied images) and everything
+the stages write; every path in it is :class:`pipeline.job.layout.JobLayout`'s. A folder without a manifest is
+an upload still streaming (or one whose API process died mid-upload; swept after a day).
 """
 
 from __future__ import annotations
@@ -17,14 +17,14 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.markers import atomic_write_text
 
-from .manifest import MANIFEST_NAME, Manifest
+from .manifest import Manifest
 
 log = logging.getLogger(__name__)
 
 JOB_ID_RE = re.compile(r"^[a-z][a-z0-9]{7,63}$")
-LOG_NAME = "log.txt"
 INCOMPLETE_UPLOAD_AGE_S = 24 * 3600
 CHECKPOINT_RE = re.compile(r"checkpoint written: \S+ \(iteration (\d+)\)")  # pipeline.train.checkpoint's log line
 
@@ -50,8 +50,11 @@ class JobStore:
             raise JobNotFound(job_id)  # not a name we ever hand out: never touch the file system with it
         return self.root / job_id
 
+    def layout(self, job_id: str) -> JobLayout:
+        return JobLayout(self.job_dir(job_id))
+
     def manifest_path(self, job_id: str) -> Path:
-        return self.job_dir(job_id) / MANIFEST_NAME
+        return self.layout(job_id).manifest
 
     def exists(self, job_id: str) -> bool:
         try:
@@ -100,12 +103,12 @@ class JobStore:
     # ---- log
     def append_log(self, job_id: str, line: str) -> None:
         stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-        with open(self.job_dir(job_id) / LOG_NAME, "a", encoding="utf-8") as f:
+        with open(self.layout(job_id).log, "a", encoding="utf-8") as f:
             f.write(f"{stamp} {line.rstrip()}\n")
 
     def read_log(self, job_id: str, offset: int, limit: int) -> tuple[str, int, int]:
         """(text, next_offset, size) from byte ``offset``: whole lines only, unless one line exceeds ``limit``."""
-        path = self.job_dir(job_id) / LOG_NAME
+        path = self.layout(job_id).log
         try:
             size = path.stat().st_size
         except FileNotFoundError:
@@ -123,7 +126,7 @@ class JobStore:
 
     def last_checkpoint_iteration(self, job_id: str, tail_bytes: int = 256 << 10) -> int | None:
         """The iteration of the last training checkpoint the job's log reports (``checkpoint written``)."""
-        path = self.job_dir(job_id) / LOG_NAME
+        path = self.layout(job_id).log
         try:
             with open(path, "rb") as f:
                 f.seek(max(0, path.stat().st_size - tail_bytes))
@@ -143,7 +146,7 @@ class JobStore:
                 continue
             for e in os.scandir(base):
                 p = Path(e.path)
-                if not e.is_dir() or (base == self.root and (p / MANIFEST_NAME).exists()):
+                if not e.is_dir() or (base == self.root and JobLayout(p).manifest.exists()):
                     continue
                 if now - e.stat().st_mtime > max_age_s:
                     shutil.rmtree(p, ignore_errors=True)

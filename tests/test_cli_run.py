@@ -10,6 +10,7 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.config import SynthConfig
+from pipeline.job.layout import JobLayout
 from pipeline.synth.procedural import generate_scene
 
 
@@ -48,9 +49,10 @@ def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
     assert main(argv) == 0
     first = _last_json(capsys.readouterr().out)
     assert first["skipped"] == [] and first["mode"] == "homogeneous"
-    for f in ("reconstruction.ply", "report.json", "report.html"):
-        assert (job / "output" / f).is_file(), f
-    assert len(list((job / "output" / "restored").glob("*.png"))) == 12
+    layout = JobLayout(job)
+    for f in (layout.ply, layout.report_json, layout.report_html):
+        assert f.is_file(), f
+    assert len(list(layout.export_folder("restored").glob("*.png"))) == 12
 
     assert main(argv) == 0
     out = capsys.readouterr()

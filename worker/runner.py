@@ -22,12 +22,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from pipeline.job.layout import JobLayout
 from service.compose import Components
 from service.coord import Coordinator, RunLock
 from service.jobs import pipeline_stages
 from service.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, overall_progress
 from service.redact import redact_paths
-from service.store import LOG_NAME, JobNotFound, JobStore
+from service.store import JobNotFound, JobStore
 
 log = logging.getLogger(__name__)
 
@@ -205,9 +206,9 @@ def _read_ingest(job_dir) -> dict | None:
     import json
 
     try:
-        data = json.loads((job_dir / "ingest.json").read_text())
+        data = json.loads(JobLayout(job_dir).ingest.read_text())
     except (OSError, ValueError) as e:
-        log.warning("cannot read %s: %s", job_dir / "ingest.json", e)
+        log.warning("cannot read %s: %s", JobLayout(job_dir).ingest, e)
         return None
     return data if isinstance(data, dict) else None
 
@@ -293,7 +294,7 @@ class JobLogFormatter(logging.Formatter):
 @contextmanager
 def job_log(store: JobStore, job_id: str, data_dir=None) -> Iterator[None]:
     """Copy log records (ours and the pipeline's, INFO and up) into the job's log.txt while a stage runs."""
-    handler = logging.FileHandler(store.job_dir(job_id) / LOG_NAME, encoding="utf-8", delay=True)
+    handler = logging.FileHandler(store.layout(job_id).log, encoding="utf-8", delay=True)
     handler.setLevel(logging.INFO)
     handler.setFormatter(JobLogFormatter(store.job_dir(job_id), data_dir))
     root = logging.getLogger()

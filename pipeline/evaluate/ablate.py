@@ -164,6 +164,7 @@ def run_ablation(out: str | Path, cfg: AblationConfig,
     from pipeline.scene.loader import load_scene
     from pipeline.scene.split import split_views
     from pipeline.synth.procedural import generate_scene
+    from pipeline.synth.water import TRUE_WATER_FILE
     from pipeline.train.trainer import Trainer
     from pipeline.water import classify
 
@@ -172,8 +173,8 @@ def run_ablation(out: str | Path, cfg: AblationConfig,
     synth = SynthConfig(views=cfg.views, width=cfg.width, height=cfg.height, preset=cfg.water,  # type: ignore[arg-type]
                         seed=cfg.seed)
     root = out / "scene"
-    same = (root / "water.json").is_file() and json.loads((root / "water.json").read_text()).get(
-        "generator") == to_dict(synth)
+    truth = root / TRUE_WATER_FILE  # the generated scene's true water, with the generator's config
+    same = truth.is_file() and json.loads(truth.read_text()).get("generator") == to_dict(synth)
     if not same:
         generate_scene(synth, root)
     scene = load_scene(root)

@@ -11,7 +11,7 @@
   the recovered β_D, β_B (1/m via the alignment's metres per scene unit) and B∞ against the truth, and the
   depth error after scale alignment (least-squares scale) and at the SfM alignment's scale.
 - Per-stage wall times (the stage markers), training iterations/s and render milliseconds per view.
-- The speed-vs-error curve recorded during training (``train.json`` history).
+- The speed-vs-error curve recorded during training (the train stage's result, its history).
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import torch
 
 from pipeline.evaluate.metrics import coefficient_error, mean_ssim, pooled_psnr, scale_aligned_depth_error
 from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
+from pipeline.job.layout import JobLayout
 from pipeline.scene.types import View
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel
@@ -38,7 +39,6 @@ from pipeline.train.render import ViewOutputs, render_outputs
 
 log = logging.getLogger(__name__)
 
-TRUE_CAMERA_DIR = "evaluate/true_camera"  # renders from the true cameras (ground-truth jobs), under the job
 ALPHA_VALID = 0.5  # pixels the model covers at least this much count for the depth error
 
 
@@ -166,7 +166,8 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
     from pipeline.synth.ground_truth import load_ground_truth
 
     gt = load_ground_truth(gt_root)
-    job_scene = load_scene(job / "scene")
+    layout = JobLayout(job)
+    job_scene = load_scene(layout.scene)
     sim = fit_similarity(job_scene, gt.scene)
     alignment = align_to_reference(job_scene, gt.scene)
     true_views = {v.name: v for v in gt.scene.views}
@@ -177,10 +178,10 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
     trained = sorted(({v.name for v in job_scene.views} - set(test_names)) & true_views.keys())
     seen = gt.seen_by([scaled_view(true_views[n], downscale) for n in names], [true_views[t] for t in trained])
     rendered = render_timed(model, views, backend)
-    save_renders(rendered, job / TRUE_CAMERA_DIR)
+    save_renders(rendered, layout.true_camera)
     clean = [gt.clean(v) for v in views]
     photos = [load_view_image_from(gt_root / "images" / v.name, v) for v in views]
-    train = json.loads((job / "train" / "train.json").read_text())
+    train = json.loads(layout.train_result.read_text())
     restored = [(r.out.J, c) for r, c in zip(rendered, clean, strict=True)]
     unrestored = list(zip(photos, clean, strict=True))
     return {
@@ -239,7 +240,7 @@ def load_view_image_from(path: Path, view: View) -> np.ndarray:
 
 def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages: Sequence[str] = (),
                  backend: str = "auto") -> dict[str, Any]:
-    """Score the job's trained model (``job/train/latest.pt``); returns the JSON-able evaluation.
+    """Score the job's trained model (``JobLayout.checkpoint``); returns the JSON-able evaluation.
 
     ``stages`` names the stages whose marker timings to collect (those before this one).
     """
@@ -250,15 +251,16 @@ def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages
 
     t0 = time.perf_counter()
     job = Path(job)
-    state = load_checkpoint(job / "train" / "latest.pt")
+    layout = JobLayout(job)
+    state = load_checkpoint(layout.checkpoint)
     model = model_from_state(state)
     down = int(state["config"].get("downscale", 1))
-    _, test = split_views(load_scene(job / "scene").views)
+    _, test = split_views(load_scene(layout.scene).views)
     test = [scaled_view(v, down) for v in test]
     lp = lpips_from_env()
     rendered = render_timed(model, test, backend)
     metrics = held_out_metrics(rendered, [load_view_image(v) for v in test], lp)
-    train = json.loads((job / "train" / "train.json").read_text())
+    train = json.loads(layout.train_result.read_text())
     restoration = None
     if ground_truth is not None:
         restoration = restoration_metrics(job, model, [v.name for v in test], down, Path(ground_truth), lp, backend)

@@ -1,9 +1,9 @@
 """The job's report: ``report.json`` (schema ``pipeline/data/report.schema.json``, documented in docs/REPORT.md)
-and a self-contained ``report.html`` (every picture embedded as a ``data:`` URI), both in ``job/output/``.
+and a self-contained ``report.html`` (every picture embedded as a ``data:`` URI), both in the job's output folder.
 
-Built at the end of the export stage from what the stages wrote: ``job.json`` (options), ``water.json``
-(classify), ``train/train.json`` and ``train/selection.json`` (train; the latter only with ``--mode auto``),
-``evaluate.json`` and ``evaluate/`` (evaluate) and ``output/`` (export's images).
+Built at the end of the export stage from what the stages wrote (paths in :class:`pipeline.job.layout.JobLayout`):
+the options, the classifier's decision, the train stage's result and, with ``--mode auto``, its selection, the
+evaluation and its true-camera renders, and the export's images.
 """
 
 from __future__ import annotations
@@ -18,16 +18,15 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.evaluate.evaluation import TRUE_CAMERA_DIR, json_safe, scaled_view, stage_timings
+from pipeline.evaluate.evaluation import json_safe, scaled_view, stage_timings
+from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
 from pipeline.job.markers import atomic_write_json, atomic_write_text
 
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
 SCHEMA_FILE = Path(__file__).resolve().parents[1] / "data" / "report.schema.json"
-CURVE_PNG = "speed_vs_error.png"
 MAX_VIEWS_SHOWN = 6  # held-out views pictured in the HTML (all are scored)
-OUTPUT_FOLDERS = ("restored", "with_water", "attenuation", "backscatter", "depth")
 
 
 def _read_json(path: Path) -> Any:
@@ -35,10 +34,10 @@ def _read_json(path: Path) -> Any:
 
 
 def selection_of(job: Path, options: dict, mode: str) -> dict[str, Any]:
-    """What mode was chosen and why: ``train/selection.json`` (written by ``--mode auto``: ``requested``,
+    """What mode was chosen and why: the selection (written by ``--mode auto``: ``requested``,
     ``chosen``, ``reason``, the probe's numbers) when present, with ``mode`` = the chosen mode; else the mode
     the user asked for."""
-    sel = _read_json(job / "train" / "selection.json")
+    sel = _read_json(JobLayout(job).selection)
     if isinstance(sel, dict) and ("chosen" in sel or "mode" in sel):
         return {"reason": "chosen automatically", **sel, "mode": sel.get("chosen", sel.get("mode"))}
     return {"mode": mode, "requested": options.get("mode", mode), "reason": "requested by the user"}
@@ -86,10 +85,11 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
     from pipeline.job.table import STAGES
 
     job = Path(job)
-    ev = _read_json(job / "evaluate.json")
+    layout = JobLayout(job)
+    ev = _read_json(layout.evaluate)
     if ev is None:
-        raise FileNotFoundError(f"{job / 'evaluate.json'} is missing: run the evaluate stage first")
-    options = _read_json(job / "job.json") or {}
+        raise FileNotFoundError(f"{layout.evaluate} is missing: run the evaluate stage first")
+    options = _read_json(layout.options) or {}
     stages = stage_timings(job, [s for s in STAGES if s != "export"])
     stages["export"] = export_s
     timings = {k: v for k, v in ev["timings"].items() if k != "stages_s"}
@@ -103,13 +103,13 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
                                      "beta_B": [b / scale for b in medium["beta_B"]], "B_inf": medium["B_inf"],
                                      "units": "1/m (B_inf: linear intensity)"}
     model["water_coefficients"] = water_coefficients(medium, scale)
-    out = job / "output"
-    train = _read_json(job / "train" / "train.json") or {}
+    train = _read_json(layout.train_result) or {}
+    water = layout.classify_written  # a job folder from before the classifier's file was renamed: the legacy one
     report = {
         "schema_version": SCHEMA_VERSION,
         "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
         "job": {"name": job.resolve().name, "options": options},
-        "water": _read_json(job / "water.json"),
+        "water": _read_json(water) if water is not None else None,
         "mode": ev["mode"],
         "preset": options.get("preset", ""),
         "selection": selection_of(job, options, ev["mode"]),
@@ -117,10 +117,12 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "metrics": ev["metrics"],
         "restoration": restoration,
         "timings": timings,
-        "speed_vs_error": {**ev["speed_vs_error"], "plot": CURVE_PNG if ev["speed_vs_error"]["points"] else None},
+        "speed_vs_error": {**ev["speed_vs_error"],
+                           "plot": layout.curve_png.name if ev["speed_vs_error"]["points"] else None},
         "model": model,
         "config": ev.get("config", {}),
-        "outputs": {f: sum(1 for p in (out / f).glob("*.png")) for f in OUTPUT_FOLDERS if (out / f).is_dir()},
+        "outputs": {f: sum(1 for p in layout.export_folder(f).glob("*.png")) for f in EXPORT_FOLDERS
+                    if layout.export_folder(f).is_dir()},
         "input": input_summary(job, options),
         "sfm": sfm_summary(job),
     }
@@ -131,10 +133,11 @@ SFM_FIELDS = ("registered", "total", "mean_reproj_error_px", "num_points3D", "ma
 
 
 def input_summary(job: Path, options: dict) -> dict[str, Any]:
-    """What went in: the input's name (``source.json``'s ``name`` when the service wrote one, e.g. the uploaded
-    file's name; else the source's own name), the images ingest kept and the files it skipped."""
-    ingested = _read_json(job / "ingest.json") or {}
-    named = _read_json(job / "source.json") or {}
+    """What went in: the input's name (the ``name`` of the service's ``JobLayout.source_name`` when it wrote one,
+    e.g. the uploaded file's name; else the source's own name), the images ingest kept and the files it skipped."""
+    layout = JobLayout(job)
+    ingested = _read_json(layout.ingest) or {}
+    named = _read_json(layout.source_name) or {}
     name = named.get("name") or Path(str(options.get("source", "") or ingested.get("source", ""))).name
     return {"name": name or None, "images": len(ingested.get("images", [])) if ingested else None,
             "skipped": len(ingested.get("skipped", [])) if ingested else None}
@@ -192,7 +195,8 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
     from pipeline.scene.split import split_views
     from pipeline.synth.ground_truth import load_ground_truth
 
-    out = job / "output"
+    layout = JobLayout(job)
+    out = layout.export_folder
     names = report["metrics"]["test"]["views"][:MAX_VIEWS_SHOWN]
     down = int(report["model"].get("downscale", 1))
     rest = report["restoration"]
@@ -200,35 +204,35 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
     restored = report["mode"] != "3dgs"  # 3dgs models no water: its "restored" image is the model, not a restoration
     if rest is not None:  # the true cameras: photo, model, restored and truth share one geometry
         # the report names the ground truth without its server path; evaluate.json has the real one
-        gt = load_ground_truth(((_read_json(job / "evaluate.json") or {}).get("restoration") or {}).get(
+        gt = load_ground_truth(((_read_json(layout.evaluate) or {}).get("restoration") or {}).get(
             "ground_truth", rest["ground_truth"]))
         true_views = {v.name: scaled_view(v, down) for v in gt.scene.views}
         for n in (n for n in names if n in rest["views"]):
             v, stem = true_views[n], Path(n).stem
             photo = load_view_image(type(v)(v.name, v.camera, v.R, v.t, gt.root / "images" / n))
             cells = [("photo", image_png(photo)),
-                     ("model, with water", (job / TRUE_CAMERA_DIR / "with_water" / f"{stem}.png").read_bytes()),
-                     ("restored J", (job / TRUE_CAMERA_DIR / "restored" / f"{stem}.png").read_bytes()),
+                     ("model, with water", (layout.true_camera / "with_water" / f"{stem}.png").read_bytes()),
+                     ("restored J", (layout.true_camera / "restored" / f"{stem}.png").read_bytes()),
                      ("ground truth J", image_png(gt.clean(v)))]
             cells = [c for c in cells if restored or c[0] != "restored J"]
             views.append((n, cells))
     else:
-        _, test = split_views(load_scene(job / "scene").views)
+        _, test = split_views(load_scene(layout.scene).views)
         by_name = {v.name: scaled_view(v, down) for v in test}
         for n in (n for n in names if n in by_name):
             stem = Path(n).stem
             views.append((n, [("photo", image_png(load_view_image(by_name[n]))),
-                              ("model, with water", (out / "with_water" / f"{stem}.png").read_bytes())]
-                          + ([("restored J", (out / "restored" / f"{stem}.png").read_bytes())] if restored else [])))
+                              ("model, with water", (out("with_water") / f"{stem}.png").read_bytes())]
+                          + ([("restored J", (out("restored") / f"{stem}.png").read_bytes())] if restored else [])))
     maps = []
-    depths = {n: np.load(out / "depth" / f"{Path(n).stem}.npy") for n in names
-              if (out / "depth" / f"{Path(n).stem}.npy").is_file()}
+    depths = {n: np.load(out("depth") / f"{Path(n).stem}.npy") for n in names
+              if (out("depth") / f"{Path(n).stem}.npy").is_file()}
     zmax = max((float(d.max()) for d in depths.values()), default=1.0) or 1.0
     for n in names:
         stem, cells = Path(n).stem, []
         for folder, label in (("attenuation", "attenuation A"), ("backscatter", "backscatter B")):
-            if (out / folder / f"{stem}.png").is_file():
-                cells.append((label, image_png(read_image(out / folder / f"{stem}.png"))))
+            if (out(folder) / f"{stem}.png").is_file():
+                cells.append((label, image_png(read_image(out(folder) / f"{stem}.png"))))
         if n in depths:
             cells.append((f"depth (0-{zmax:.3g} scene units)", image_png(depths[n], "viridis", 0.0, zmax)))
         if cells:
@@ -239,22 +243,25 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
 
 
 def write_report(job: str | Path, out: str | Path | None = None, export_s: float | None = None) -> list[Path]:
-    """Write report.json, report.html and the curve's PNG into ``out`` (default ``job/output``); returns the
-    paths written."""
+    """Write report.json, report.html and the curve's PNG into ``out`` (default: the job's output folder, where
+    they have the names of ``JobLayout``); returns the paths written."""
     from pipeline.evaluate.report_html import render_html
 
     t0 = time.perf_counter()
     job = Path(job)
-    out = Path(out) if out is not None else job / "output"
+    layout = JobLayout(job)
+    out = Path(out) if out is not None else layout.output
     out.mkdir(parents=True, exist_ok=True)
+    report_json, report_html, curve_png = (out / p.name for p in (layout.report_json, layout.report_html,
+                                                                  layout.curve_png))
     report = build_report(job, export_s)
     pictures = collect_pictures(job, report)
-    written = [atomic_write_json(out / "report.json", report)]
+    written = [atomic_write_json(report_json, report)]
     if pictures.curve is not None:
-        (out / CURVE_PNG).write_bytes(pictures.curve)
-        written.append(out / CURVE_PNG)
-    written.append(atomic_write_text(out / "report.html", render_html(report, pictures)))
-    log.info("report written to %s (%.1f s)", out / "report.html", time.perf_counter() - t0)
+        curve_png.write_bytes(pictures.curve)
+        written.append(curve_png)
+    written.append(atomic_write_text(report_html, render_html(report, pictures)))
+    log.info("report written to %s (%.1f s)", report_html, time.perf_counter() - t0)
     return written
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.job.layout import EXPORT_FOLDERS
+from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
 from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
 from pipeline.scene.types import View
 
@@ -26,7 +26,7 @@ def training_views(job: Path, state: dict) -> list[View]:
 
     down = int(state["config"].get("downscale", 1))
     return [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
-            for v in load_scene(job / "scene").views]
+            for v in load_scene(JobLayout(job).scene).views]
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
@@ -77,7 +77,7 @@ def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "a
     bad = [w for w in what if w not in EXPORT_FOLDERS]
     if bad:
         raise RenderError(f"unknown output {', '.join(bad)}; choose from {', '.join(EXPORT_FOLDERS)}")
-    ckpt = job / "train" / "latest.pt"
+    ckpt = JobLayout(job).checkpoint
     if not ckpt.is_file():
         raise RenderError(f"{job} has no trained model ({ckpt} is missing): run `dualphys run` on it first")
     state = load_checkpoint(ckpt)

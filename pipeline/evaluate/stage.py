@@ -1,15 +1,16 @@
-"""The evaluate stage: held-out scores, restoration against ground truth, timings -> ``job/evaluate.json``."""
+"""The evaluate stage: held-out scores, restoration against ground truth, timings -> ``JobLayout.evaluate``."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions, StageContext
 
 
 def stage_evaluate(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     """Held-out scores, restoration against ground truth where it exists, timings, the speed-vs-error curve
-    (``pipeline.evaluate.evaluation``) -> ``job/evaluate.json``."""
+    (``pipeline.evaluate.evaluation``) -> ``JobLayout.evaluate``."""
     from pipeline.evaluate.evaluation import evaluate_job
     from pipeline.job.markers import atomic_write_json
     from pipeline.job.table import STAGES
@@ -17,5 +18,5 @@ def stage_evaluate(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     gt = find_ground_truth(opts.source, opts.ground_truth)
     res = evaluate_job(job, gt, stages=STAGES[:STAGES.index("evaluate")])
-    atomic_write_json(job / "evaluate.json", res)
+    atomic_write_json(JobLayout(job).evaluate, res)
     return res

@@ -1,9 +1,10 @@
-"""The export stage: the reconstruction PLY, the per-view images and the report -> ``job/output/``."""
+"""The export stage: the reconstruction PLY, the per-view images and the report -> ``JobLayout.output``."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions, StageContext
 
 
@@ -20,15 +21,16 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.splat.ply import export_ply
     from pipeline.train.checkpoint import load_checkpoint
 
-    state = load_checkpoint(job / "train" / "latest.pt")
-    out = job / "output"
+    layout = JobLayout(job)
+    state = load_checkpoint(layout.checkpoint)
+    out = layout.output
     out.mkdir(parents=True, exist_ok=True)
-    data = export_ply(state["gaussians"], out / "reconstruction.ply")
+    data = export_ply(state["gaussians"], layout.ply)
     down = int(state["config"].get("downscale", 1))
     views = [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
-             for v in load_scene(job / "scene").views]
+             for v in load_scene(layout.scene).views]
     counts = export_views(state, views, out)
     from pipeline.evaluate.report import write_report
 
     reports = write_report(job, out, export_s=time.perf_counter() - t0)
-    return {"reconstruction.ply": len(data), **counts, "report": [p.name for p in reports]}
+    return {layout.ply.name: len(data), **counts, "report": [p.name for p in reports]}

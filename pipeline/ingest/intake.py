@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.ingest.archive import ArchiveLimits, extract_archive
+from pipeline.job.layout import JobLayout
 
 log = logging.getLogger(__name__)
 
@@ -79,17 +80,18 @@ def _candidates(root: Path) -> list[Path]:
 
 
 def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = None) -> IngestResult:
-    """Run the stage: ``source`` is a folder of images or a zip/tar archive. Writes ``job_dir/images/`` and
-    ``job_dir/ingest.json``; returns the result. Raises IngestError or pipeline.ingest.archive.ArchiveError."""
+    """Run the stage: ``source`` is a folder of images or a zip/tar archive. Writes the job's images and
+    ``JobLayout.ingest``; returns the result. Raises IngestError or pipeline.ingest.archive.ArchiveError."""
     from pipeline.scene.images import ImageReadError, read_pixels, write_image
 
     cfg = cfg or IngestConfig()
     source, job_dir = Path(source), Path(job_dir)
-    images_dir = job_dir / "images"
+    layout = JobLayout(job_dir)
+    images_dir = layout.images
     if images_dir.exists():
         shutil.rmtree(images_dir)  # a re-run starts clean: the marker was not written, so this is partial
     images_dir.mkdir(parents=True)
-    unpacked = job_dir / "upload"
+    unpacked = layout.unpacked
     ignored: list[dict] = []
     if source.is_dir():
         root = source
@@ -133,7 +135,7 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
         if skipped:
             why += f" ({len(skipped)} file(s) could not be decoded)"
         raise IngestError("too_few_images", why)
-    (job_dir / "ingest.json").write_text(json.dumps(result.to_json(), indent=2))
+    layout.ingest.write_text(json.dumps(result.to_json(), indent=2))
     log.info("ingest: %d images, %d skipped, %d ignored", len(written), len(skipped), len(ignored))
     return result
 

@@ -1,4 +1,4 @@
-"""The ingest stage: the job's source (archive or folder) -> ``job/images/``."""
+"""The ingest stage: the job's source (archive or folder) -> the job's images (``JobLayout.images``)."""
 
 from __future__ import annotations
 

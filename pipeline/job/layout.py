@@ -1,22 +1,32 @@
-"""Every path in a job folder, spelled once. Pipeline, report, re-rendering and the service's artifacts all
-read and write through :class:`JobLayout`; ``tests/job/test_layout.py`` fails when a path is spelled elsewhere.
+"""Every path in a job folder, spelled once. Pipeline, report, re-rendering, the service and the worker all
+read and write through :class:`JobLayout`; ``tests/job/test_layout.py`` fails when a name is spelled elsewhere.
 
 Job folder::
 
     job/
       job.json          the options (written once by whoever creates the job)
-      images/           ingest: validated, upright images
+      images/           ingest: validated, upright images (upload/ holds an archive while ingest unpacks it)
       ingest.json       ingest: what was taken and what was refused
       scene/            sfm: images/ (undistorted) + sparse/0 (PINHOLE) + distorted/
       classify.json     classify: water type, probabilities, index w, controller settings
+                        (water.json in job folders written before the rename; see legacy_classify)
       train/            train: latest.pt (the resume point), train.json (metrics, speed-vs-error, quality),
-                        selection.json (the mode probe, mode auto), config.json (the resolved TrainConfig)
+                        selection.json (the mode probe, mode auto), config.json (the resolved TrainConfig),
+                        recovery.json + collapsed.pt (a first attempt that lost its scene)
       evaluate.json     evaluate: held-out scores, restoration against ground truth, timings, the curve
-      evaluate/         evaluate: renders from the true cameras (jobs with ground truth)
+      evaluate/         evaluate: true_camera/ renders from the true cameras (jobs with ground truth)
       output/           export: reconstruction.ply, restored/, with_water/, attenuation/, backscatter/, depth/,
                         report.json, report.html, speed_vs_error.png
       .stages/<stage>.json   completion markers (config hash + result)
-      .artifacts.json   the service's checksum cache of the downloadable files
+    written by the service:
+      manifest.json     the job record (a folder without one is an upload still streaming)
+      log.txt           the job's log, append-only
+      input/            the uploaded archive (input/archive) or a survey set's copied images
+      source.json       the input's name as the client knows it (the report shows it)
+      .artifacts.json   the checksum cache of the downloadable files
+
+A generated scene (``pipeline.synth``) is another folder with its own names: its ``water.json`` is the true
+water (:data:`pipeline.synth.water.TRUE_WATER_FILE`), unrelated to the job's ``classify.json``.
 """
 
 from __future__ import annotations
@@ -26,6 +36,13 @@ from pathlib import Path
 
 # The per-view image folders of the export (the last two only in medium modes).
 EXPORT_FOLDERS: tuple[str, ...] = ("restored", "with_water", "depth", "attenuation", "backscatter")
+
+# The train folder's files by name. The trainer, its collapse guard and the mode probe are handed the folder
+# (tests and benches train into any folder) and join these names to it; in a job it is JobLayout.train.
+CHECKPOINT_NAME = "latest.pt"
+SELECTION_NAME = "selection.json"
+RECOVERY_NAME = "recovery.json"
+COLLAPSED_NAME = "collapsed.pt"
 
 
 @dataclass(frozen=True)
@@ -47,6 +64,11 @@ class JobLayout:
         return self.root / "images"
 
     @property
+    def unpacked(self) -> Path:
+        """Where ingest unpacks an archive source (removed once the images are taken)."""
+        return self.root / "upload"
+
+    @property
     def ingest(self) -> Path:
         return self.root / "ingest.json"
 
@@ -60,6 +82,19 @@ class JobLayout:
         """The classifier's water decision (a generated scene's ``water.json`` is its true water, not this)."""
         return self.root / "classify.json"
 
+    @property
+    def legacy_classify(self) -> Path:
+        """Where job folders written before the rename keep the classifier's decision. Their classify marker
+        matches (the stage's options did not change), so the stage is skipped on resume and never writes
+        :attr:`classify`: readers fall back to this file, or a resumed job would train without its water."""
+        return self.root / "water.json"
+
+    @property
+    def classify_written(self) -> Path | None:
+        """The classifier's decision as this folder holds it: :attr:`classify`, else :attr:`legacy_classify`,
+        else None (not classified)."""
+        return next((p for p in (self.classify, self.legacy_classify) if p.is_file()), None)
+
     # ------------------------------------------------------------------ train
     @property
     def train(self) -> Path:
@@ -67,7 +102,7 @@ class JobLayout:
 
     @property
     def checkpoint(self) -> Path:
-        return self.train / "latest.pt"
+        return self.train / CHECKPOINT_NAME
 
     @property
     def train_result(self) -> Path:
@@ -75,11 +110,19 @@ class JobLayout:
 
     @property
     def selection(self) -> Path:
-        return self.train / "selection.json"
+        return self.train / SELECTION_NAME
 
     @property
     def train_config(self) -> Path:
         return self.train / "config.json"
+
+    @property
+    def recovery(self) -> Path:
+        return self.train / RECOVERY_NAME
+
+    @property
+    def collapsed(self) -> Path:
+        return self.train / COLLAPSED_NAME
 
     # ------------------------------------------------------------------ evaluate
     @property
@@ -89,6 +132,11 @@ class JobLayout:
     @property
     def evaluate_renders(self) -> Path:
         return self.root / "evaluate"
+
+    @property
+    def true_camera(self) -> Path:
+        """Renders from the true cameras (with_water/, restored/), jobs with ground truth only."""
+        return self.evaluate_renders / "true_camera"
 
     # ------------------------------------------------------------------ export
     @property
@@ -123,6 +171,28 @@ class JobLayout:
 
     def marker(self, stage: str) -> Path:
         return self.markers / f"{stage}.json"
+
+    # ------------------------------------------------------------------ the service's files
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def log(self) -> Path:
+        return self.root / "log.txt"
+
+    @property
+    def input(self) -> Path:
+        return self.root / "input"
+
+    @property
+    def upload(self) -> Path:
+        """The uploaded archive as received."""
+        return self.input / "archive"
+
+    @property
+    def source_name(self) -> Path:
+        return self.root / "source.json"
 
     @property
     def artifacts_cache(self) -> Path:

@@ -1,8 +1,8 @@
 """The stage contract: a stage writes its outputs, then a completion marker holding its config hash; a
 stage whose marker matches is skipped, so a crashed, redelivered or retried job resumes where it stopped.
 
-Markers live in ``job/.stages/<name>.json``. Writes are atomic (temp file + rename), so a reader never sees
-half a marker and a killed process leaves either the old state or the new one.
+Markers live in the job folder at :meth:`pipeline.job.layout.JobLayout.marker`. Writes are atomic (temp file +
+rename), so a reader never sees half a marker and a killed process leaves either the old state or the new one.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-MARKER_DIR = ".stages"
+from pipeline.job.layout import JobLayout
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
@@ -47,7 +47,7 @@ def config_hash(obj: Any) -> str:
 
 
 def marker_path(job_dir: str | Path, stage: str) -> Path:
-    return Path(job_dir) / MARKER_DIR / f"{stage}.json"
+    return JobLayout(job_dir).marker(stage)
 
 
 def read_marker(job_dir: str | Path, stage: str) -> dict | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobCancelled, JobOptions, StageContext
 
 
@@ -17,6 +18,7 @@ def stage_sfm(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.config import SfmConfig
     from pipeline.sfm.recipe import run_sfm
 
+    layout = JobLayout(job)
     token, done = pycolmap.CancellationToken(), threading.Event()
 
     def watch() -> None:
@@ -28,7 +30,7 @@ def stage_sfm(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     watcher = threading.Thread(target=watch, name="sfm-cancel-watch", daemon=True)
     watcher.start()
     try:
-        return run_sfm(job / "images", job / "scene", SfmConfig(seed=opts.seed), cancellation_token=token).to_dict()
+        return run_sfm(layout.images, layout.scene, SfmConfig(seed=opts.seed), cancellation_token=token).to_dict()
     except InterruptedError as e:
         raise JobCancelled(f"cancelled during sfm: {e}") from e
     finally:

@@ -2,8 +2,10 @@
 
 A generated scene folder holds ``images/`` (what the job ingests), ``clean/`` (the true restored radiance J),
 ``depth/*.npy`` (camera-space z in metres), ``sparse_gt/`` (the true cameras, metres) and ``water.json`` (the
-true β_D, β_B, B∞ and the generator's config). A job finds it either through ``JobOptions.ground_truth`` (the
-scene folder) or, when that is unset, because its source is a folder named ``images`` inside such a scene.
+true β_D, β_B, B∞ and the generator's config: :data:`pipeline.synth.water.TRUE_WATER_FILE`, the scene's truth,
+unrelated to the classifier's decision in a job folder). A job finds it either through
+``JobOptions.ground_truth`` (the scene folder) or, when that is unset, because its source is a folder named
+``images`` inside such a scene.
 Nothing else counts as ground truth: a folder must carry the generator's ``water.json`` and ``clean/``.
 """
 
@@ -20,6 +22,7 @@ import numpy as np
 from pipeline.scene.images import resize_area_to
 from pipeline.scene.loader import load_scene, load_view_image
 from pipeline.scene.types import Scene, View
+from pipeline.synth.water import TRUE_WATER_FILE
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +91,7 @@ def is_generated_scene(root: str | Path) -> bool:
     """True when ``root`` looks like the generator's output (water.json with its config, clean/, sparse_gt/)."""
     root = Path(root)
     try:
-        meta = json.loads((root / "water.json").read_text())
+        meta = json.loads((root / TRUE_WATER_FILE).read_text())  # the generator's true water
     except (OSError, json.JSONDecodeError):
         return False
     return (isinstance(meta, dict) and "generator" in meta and "beta_D" in meta
@@ -100,8 +103,8 @@ def find_ground_truth(source: str | Path | None, explicit: str | Path | None = N
     parent of a source folder named ``images`` when that parent is a generated scene, else None."""
     if explicit:
         if not is_generated_scene(explicit):
-            raise GroundTruthError(f"ground truth {explicit} is not a generated scene folder (water.json with the "
-                                   f"generator's config, clean/, sparse_gt/)")
+            raise GroundTruthError(f"ground truth {explicit} is not a generated scene folder ({TRUE_WATER_FILE} "
+                                   f"with the generator's config, clean/, sparse_gt/)")
         return Path(explicit)
     if source:
         src = Path(source)
@@ -115,7 +118,7 @@ def load_ground_truth(root: str | Path) -> GroundTruth:
     root = Path(root)
     if not is_generated_scene(root):
         raise GroundTruthError(f"{root} is not a generated scene folder")
-    return GroundTruth(root, load_scene(root), json.loads((root / "water.json").read_text()))
+    return GroundTruth(root, load_scene(root), json.loads((root / TRUE_WATER_FILE).read_text()))
 
 
 __all__ = ["GroundTruth", "GroundTruthError", "find_ground_truth", "is_generated_scene", "load_ground_truth"]

@@ -57,7 +57,7 @@ from pipeline.synth.photo_path import photo_survey_path
 from pipeline.synth.photo_texture import Mosaic, PhotoBox, PhotoSet, load_photos, make_mosaic, mosaic_albedo
 from pipeline.synth.photo_world import Terrain, make_terrain, march, normals
 from pipeline.synth.procedural import FAR, SynthView, sample_surface_points, write_colmap_text
-from pipeline.synth.water import WaterParams
+from pipeline.synth.water import TRUE_WATER_FILE, WaterParams
 
 log = logging.getLogger(__name__)
 F64 = torch.float64
@@ -265,7 +265,7 @@ def generate_photo_scene(cfg: PhotoSynthConfig, out_dir: str | Path) -> Path:
         "generator": dataclasses.asdict(cfg),
         "path_length_m": float(sum(np.linalg.norm(a - b) for a, b in zip(centres, centres[1:]))),
     }
-    (out / "water.json").write_text(json.dumps(meta, indent=2))
+    (out / TRUE_WATER_FILE).write_text(json.dumps(meta, indent=2))  # the truth, not a classifier's guess
     log.info("wrote photo-family %s scene with %d views to %s in %.1f s", cfg.preset, len(views), out,
              time.perf_counter() - t0)
     return out

@@ -31,7 +31,7 @@ from pipeline.config import SynthConfig, to_dict
 from pipeline.scene.colmap import rotmat_to_qvec
 from pipeline.scene.types import Camera, View, ray_length_factor
 from pipeline.synth.path import survey_path
-from pipeline.synth.water import WATER_PRESETS, underwater_image
+from pipeline.synth.water import TRUE_WATER_FILE, WATER_PRESETS, underwater_image
 from pipeline.synth.world import World, cast, make_world
 
 log = logging.getLogger(__name__)
@@ -125,7 +125,7 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path) -> Path:
         "generator": to_dict(cfg),
         "path_length_m": float(sum(np.linalg.norm(a.view.center - b.view.center) for a, b in zip(views, views[1:]))),
     }
-    (out / "water.json").write_text(json.dumps(meta, indent=2))
+    (out / TRUE_WATER_FILE).write_text(json.dumps(meta, indent=2))  # the truth, not a classifier's guess
     log.info("wrote synthetic %s scene with %d views to %s", cfg.preset, len(views), out)
     return out
 

@@ -26,6 +26,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+# A generated scene's true water (preset, coefficients, units, the generator's config), in the scene folder.
+# A scene path, not a job path: a job's water is what its classifier decided (JobLayout.classify).
+TRUE_WATER_FILE = "water.json"
+
 
 @dataclass(frozen=True)
 class WaterParams:

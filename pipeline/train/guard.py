@@ -4,8 +4,8 @@ its scene retrain once on a safer schedule; if that also loses it, fail with ``m
 Never ``done`` with a blank model: a job whose Gaussians vanished into the water used to end with a
 plausible held-out PSNR (the veil alone matches murky photos) and black restorations.
 
-Resumable: ``train/recovery.json`` records that the first attempt collapsed (its checkpoint is kept as
-``train/collapsed.pt``), so a resumed stage continues the safer attempt instead of repeating the first.
+Resumable: ``JobLayout.recovery`` records that the first attempt collapsed (its checkpoint is kept as
+``JobLayout.collapsed``), so a resumed stage continues the safer attempt instead of repeating the first.
 """
 
 from __future__ import annotations
@@ -20,18 +20,17 @@ from typing import Any
 import torch
 
 from pipeline.config import TrainConfig, from_dict, to_dict
+from pipeline.job.layout import CHECKPOINT_NAME, COLLAPSED_NAME, RECOVERY_NAME
 from pipeline.medium.losses import LossWeights
 from pipeline.scene.types import Scene, View
 from pipeline.train.budget import pixel_budget
 from pipeline.train.checkpoint import load_checkpoint
 from pipeline.train.quality import assess_state
 from pipeline.train.setup import prepare_images
-from pipeline.train.trainer import CHECKPOINT_NAME, TrainResult, train
+from pipeline.train.trainer import TrainResult, train
 
 log = logging.getLogger(__name__)
 
-RECOVERY_NAME = "recovery.json"
-COLLAPSED_NAME = "collapsed.pt"
 SAFER_SURFACE_FACTOR = 5.0  # the surface term's weight in the safer schedule, x the default
 SAFER_MEDIUM_START = 0.5  # the medium switches on no earlier than half-way in the safer schedule
 MIN_GUARDED_ITERATIONS = 1000  # shorter runs (quick looks, tests) are measured and warned about, never retried:
@@ -112,7 +111,7 @@ def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_d
         raise ModelCollapsedError(
             f"the {cfg.mode} model lost the scene ({'; '.join(quality['warnings'])}), also after a retry on a "
             f"safer schedule ({', '.join(f'{k} {v}' for k, v in recovery['changes'].items())}); both checkpoints "
-            f"are kept (train/{COLLAPSED_NAME}, train/{CHECKPOINT_NAME})")
+            f"are kept ({out.name}/{COLLAPSED_NAME}, {out.name}/{CHECKPOINT_NAME})")
     quality["warnings"] = [f"recovered: the first {cfg.mode} attempt lost the scene "
                            f"({'; '.join(recovery['first_attempt']['warnings'])}); retrained on a safer schedule"
                            ] + quality["warnings"]

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from pipeline.config import TrainConfig, scaled_train_config, to_dict
+from pipeline.job.layout import SELECTION_NAME
 from pipeline.medium.estimate import MediumEstimate
 from pipeline.scene.types import Scene, View, view_ranges
 
@@ -80,7 +81,7 @@ class ModeScore:
 
 @dataclass
 class Selection:
-    """What ``--mode auto`` chose and why (job/train/selection.json; the report's ``selection``)."""
+    """What ``--mode auto`` chose and why (``JobLayout.selection``; the report's ``selection``)."""
 
     requested: str
     chosen: str
@@ -314,7 +315,7 @@ def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: Tra
     return json.loads(path.read_text())  # exactly what a resumed job and the report will read
 
 
-SELECTION_FILE = "selection.json"
+SELECTION_FILE = SELECTION_NAME  # in the train folder (a job's JobLayout.selection)
 
 __all__ = ["MODES", "ModeScore", "ProbeConfig", "Selection", "decide", "holdout_split", "probe_config",
            "run_probe", "select_for_job", "SELECTION_FILE"]

@@ -6,6 +6,7 @@ import json
 import math
 from pathlib import Path
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobCancelled, JobOptions, StageContext
 
 
@@ -49,11 +50,13 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.train.guard import train_checked
     from pipeline.train.trainer import TrainingCancelled
 
-    scene = load_scene(job / "scene")
+    layout = JobLayout(job)
+    scene = load_scene(layout.scene)
     train_views, test_views = split_views(scene.views)
     train_scene = scene.subset(train_views)
     images = load_images(train_scene)
-    water = json.loads((job / "water.json").read_text()) if (job / "water.json").exists() else None
+    # the classify stage's decision; in a folder from before its rename, the legacy file (JobLayout.legacy_classify)
+    water = json.loads(found.read_text()) if (found := layout.classify_written) is not None else None
     selection = select_mode(job, opts, train_scene, images, water, ctx) if opts.mode == "auto" else None
     cfg = train_config(opts, scene.views[0].camera.width, selection["chosen"] if selection else None)
     if selection is not None:  # the Gaussian budget and SH degree scaled to the scene (pipeline.train.budget)
@@ -71,7 +74,7 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         ctx.on_progress("train", start + (1 - start) * it / max(1, total), f"iteration {it}/{total}")
 
     try:
-        res, quality, recovery = train_checked(train_scene, images, cfg, job / "train", test_views=curve_views,
+        res, quality, recovery = train_checked(train_scene, images, cfg, layout.train, test_views=curve_views,
                                                test_images=test_images, on_progress=progress,
                                                should_cancel=ctx.should_cancel, device=ctx.device)
     except TrainingCancelled as e:
@@ -81,7 +84,7 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
            "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
            "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale,
            "curve_views": [v.name for v in curve_views], "quality": quality, "recovery": recovery}
-    atomic_write_json(job / "train" / "train.json", out)
+    atomic_write_json(layout.train_result, out)
     return out
 
 
@@ -89,7 +92,7 @@ PROBE_SHARE = 0.1  # of the train stage's progress that the mode probe reports (
 
 
 def select_mode(job: Path, opts: JobOptions, scene, images, water: dict | None, ctx: StageContext) -> dict:
-    """``--mode auto``: the probe on the training views (``pipeline.train.probe``) -> ``job/train/selection.json``."""
+    """``--mode auto``: the probe on the training views (``pipeline.train.probe``) -> ``JobLayout.selection``."""
     from pipeline.train.probe import select_for_job
     from pipeline.train.trainer import TrainingCancelled
 
@@ -97,7 +100,7 @@ def select_mode(job: Path, opts: JobOptions, scene, images, water: dict | None, 
     if water is not None:
         apply_water_decision(base, water)
     try:
-        return select_for_job(job / "train", scene, images, base, water=water,
+        return select_for_job(JobLayout(job).train, scene, images, base, water=water,
                               on_progress=lambda f, m: ctx.on_progress("train", PROBE_SHARE * f, m),
                               should_cancel=ctx.should_cancel, device=ctx.device)
     except TrainingCancelled as e:

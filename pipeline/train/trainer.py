@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from pipeline.config import TrainConfig, from_dict, to_dict
+from pipeline.job.layout import CHECKPOINT_NAME
 from pipeline.medium.term import MediumTerm
 from pipeline.scene.types import Scene, View
 from pipeline.splat.densify import Densifier
@@ -57,7 +58,6 @@ __all__ = [
     "train",
 ]
 
-CHECKPOINT_NAME = "latest.pt"
 RESET_RECOVERY_REFINES = 2  # medium modes: the last opacity reset is at least this many refinements before the
 #                             medium starts (docs/DECISIONS.md, "The water must not eat the scene")
 STATE_VERSION = 1
@@ -289,11 +289,11 @@ def train(
 ) -> TrainResult:
     """Train on ``scene.views`` with ``images`` (one [H, W, 3] float image in [0, 1] per view).
 
-    With ``checkpoint_dir``: resumes from ``<dir>/latest.pt`` when it was written with the same config
-    (else starts afresh, with a warning, and overwrites it); saves it every ``cfg.checkpoint_every``
-    iterations, at the end, and before raising ``TrainingCancelled``. ``on_progress(iteration, total,
-    metrics)`` runs after every step, ``should_cancel()`` before every step; ``hooks`` run after every step
-    before the built-in ones (``pipeline.train.hooks``). Held-out views
+    With ``checkpoint_dir``: resumes from ``<dir>/<CHECKPOINT_NAME>`` (in a job, ``JobLayout.checkpoint``) when
+    it was written with the same config (else starts afresh, with a warning, and overwrites it); saves it every
+    ``cfg.checkpoint_every`` iterations, at the end, and before raising ``TrainingCancelled``.
+    ``on_progress(iteration, total, metrics)`` runs after every step, ``should_cancel()`` before every step;
+    ``hooks`` run after every step before the built-in ones (``pipeline.train.hooks``). Held-out views
     (``test_views``/``test_images``) are scored every ``cfg.eval_every`` iterations and at the end.
     """
     trainer = Trainer(scene, images, cfg, device=device)

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
+from pipeline.job.layout import JobLayout
+
 from ..jobs import pipeline_stages
 from ..manifest import Manifest
 from ..safe_fs import FolderTree
@@ -158,7 +160,7 @@ def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
     root = Path(survey.path)
     try:
         for f in image_set.files:
-            dst = staging / "input" / f.rel
+            dst = JobLayout(staging).input / f.rel  # the staging folder becomes the job folder
             dst.parent.mkdir(parents=True, exist_ok=True)
             src = tree.open(f.rel) if tree is not None else open(root / f.rel, "rb")
             if _copy_hashed(src, dst) != digests[f.rel][2]:
@@ -167,7 +169,7 @@ def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    opts = {**survey.options.model_dump(), "source": str(final / "input")}
+    opts = {**survey.options.model_dump(), "source": str(JobLayout(final).input)}
     source = {"kind": "survey", "survey_id": survey.id, "set": image_set.name, "set_hash": h,
               "images": len(image_set.files)}
     jobs.create(job_id, survey.owner, opts, source, survey_id=survey.id)

@@ -18,6 +18,7 @@ import pytest
 from pipeline.config import SynthConfig
 from pipeline.evaluate.evaluation import evaluate_job
 from pipeline.evaluate.report import SCHEMA_FILE, build_report, validate_report, write_report
+from pipeline.job.layout import JobLayout
 from pipeline.job.markers import atomic_write_json
 from pipeline.job.options import JobOptions
 from pipeline.job.runner import run_job
@@ -36,7 +37,7 @@ def job(tmp_path_factory):
 
 
 def _report(job_dir):
-    return json.loads((job_dir / "output" / "report.json").read_text())
+    return json.loads(JobLayout(job_dir).report_json.read_text())
 
 
 def test_stage_order_puts_evaluate_between_train_and_export():
@@ -89,7 +90,7 @@ def test_speed_vs_error_is_increasing_in_time_and_ends_at_the_final_model(job):
     assert all(b["iteration"] > a["iteration"] for a, b in zip(pts, pts[1:]))
     assert pts[-1]["iteration"] == ITERATIONS and sve["includes_final"]
     assert pts[-1]["psnr"] > pts[0]["psnr"]  # training helped
-    png = (job_dir / "output" / sve["plot"]).read_bytes()
+    png = (JobLayout(job_dir).output / sve["plot"]).read_bytes()
     assert png.startswith(b"\x89PNG\r\n\x1a\n")
 
 
@@ -106,20 +107,25 @@ def test_schema_rejects_a_report_missing_required_fields(job):
 
 def test_report_without_ground_truth_has_null_restoration(job, tmp_path):
     job_dir, _ = job
-    copy = tmp_path / "job"
-    shutil.copytree(job_dir, copy, ignore=shutil.ignore_patterns("evaluate", "report.*", "speed_vs_error.png"))
-    atomic_write_json(copy / "evaluate.json", evaluate_job(copy, None, stages=STAGES[:4]))
-    paths = write_report(copy, copy / "output")
-    assert {p.name for p in paths} == {"report.json", "report.html", "speed_vs_error.png"}
-    r = json.loads((copy / "output" / "report.json").read_text())
+    copy = JobLayout(tmp_path / "job")
+    shutil.copytree(job_dir, copy.root, ignore=shutil.ignore_patterns(copy.evaluate_renders.name, "report.*",
+                                                                      copy.curve_png.name))
+    atomic_write_json(copy.evaluate, evaluate_job(copy.root, None, stages=STAGES[:4]))
+    paths = write_report(copy.root, copy.output)
+    assert set(paths) == {copy.report_json, copy.report_html, copy.curve_png}
+    r = json.loads(copy.report_json.read_text())
     validate_report(r)
     assert r["restoration"] is None and r["model"]["metres_per_unit"] is None
-    assert "No ground truth" in (copy / "output" / "report.html").read_text()
+    assert "No ground truth" in copy.report_html.read_text()
     sel = {"requested": "auto", "chosen": "3dgs", "reason": "probe: no water found", "probe": {"3dgs": {"psnr": 30}}}
-    (copy / "train" / "selection.json").write_text(json.dumps(sel))
-    r = build_report(copy)
+    copy.selection.write_text(json.dumps(sel))
+    r = build_report(copy.root)
     validate_report(r)
     assert r["selection"] == {**sel, "mode": "3dgs"}
+    # the classifier's decision, also from a job folder written before its file was renamed
+    assert r["water"] == json.loads(copy.classify.read_text()) and r["water"]["water_type"]
+    copy.classify.rename(copy.legacy_classify)
+    assert build_report(copy.root)["water"] == r["water"]
 
 
 def _png_shape(data: bytes) -> tuple[int, ...]:
@@ -130,7 +136,7 @@ def _png_shape(data: bytes) -> tuple[int, ...]:
 
 def test_report_html_stands_alone_with_every_image_embedded(job):
     job_dir, _ = job
-    html = (job_dir / "output" / "report.html").read_text()
+    html = JobLayout(job_dir).report_html.read_text()
     srcs = re.findall(r'<img[^>]*\ssrc="([^"]*)"', html)
     assert len(srcs) == 2 * 4 + 2 * 3 + 1  # 2 held-out views x (photo, model, restored, truth) + 2 x (A, B, depth)
     for src in srcs:  # + the curve
@@ -148,7 +154,7 @@ def test_report_html_renders_in_headless_chromium(job, tmp_path):
     job_dir, _ = job
     shot = tmp_path / "shot.png"
     subprocess.run(["chromium", "--headless", "--no-sandbox", "--disable-gpu", f"--screenshot={shot}",
-                    "--window-size=1200,2000", (job_dir / "output" / "report.html").resolve().as_uri()],
+                    "--window-size=1200,2000", JobLayout(job_dir).report_html.resolve().as_uri()],
                    check=True, capture_output=True, timeout=120)
     px = mpimg.imread(shot)[..., :3]
     assert px.shape[:2] == (2000, 1200)
@@ -167,9 +173,9 @@ def test_report_says_what_happened(job, tmp_path):
     sfm = results["sfm"]
     assert r["sfm"]["registered"] == sfm["registered"] == 12 and r["sfm"]["total"] == 12
     assert r["sfm"]["matcher"] == sfm["matcher"] and r["sfm"]["mean_reproj_error_px"] == sfm["mean_reproj_error_px"]
-    text = (job_dir / "output" / "report.json").read_text()
+    text = JobLayout(job_dir).report_json.read_text()
     assert str(job_dir.parent) not in text and '"/' not in text  # no absolute path anywhere (options.source ...)
-    html = (job_dir / "output" / "report.html").read_text()
+    html = JobLayout(job_dir).report_html.read_text()
     assert f"registered <b>{sfm['registered']} of {sfm['total']}</b>" in html and "matching" in html
     assert "Input <b>images</b>: 12 images" in html
     selection = html[html.index("<h2>Model selection</h2>"):html.index("<h2>Held-out views</h2>")]
@@ -177,18 +183,18 @@ def test_report_says_what_happened(job, tmp_path):
     assert f"held-out PSNR ({r['metrics']['test']['n_views']} views)" in html
     assert "the header's held-out PSNR" in html  # the curve's last point is related to the header, either way
 
-    copy = tmp_path / "job3dgs"
-    shutil.copytree(job_dir, copy, ignore=shutil.ignore_patterns("report.*", "speed_vs_error.png"))
-    ev = json.loads((copy / "evaluate.json").read_text())
-    atomic_write_json(copy / "evaluate.json", {**ev, "mode": "3dgs"})
+    copy = JobLayout(tmp_path / "job3dgs")
+    shutil.copytree(job_dir, copy.root, ignore=shutil.ignore_patterns("report.*", copy.curve_png.name))
+    ev = json.loads(copy.evaluate.read_text())
+    atomic_write_json(copy.evaluate, {**ev, "mode": "3dgs"})
     sel = {"requested": "auto", "chosen": "3dgs", "reason": "probe: the water changes nothing measurable"}
-    (copy / "train" / "selection.json").write_text(json.dumps(sel))
-    (copy / "source.json").write_text(json.dumps({"name": "reef-dive.zip"}))
-    write_report(copy, copy / "output")
-    r3 = json.loads((copy / "output" / "report.json").read_text())
+    copy.selection.write_text(json.dumps(sel))
+    copy.source_name.write_text(json.dumps({"name": "reef-dive.zip"}))
+    write_report(copy.root, copy.output)
+    r3 = json.loads(copy.report_json.read_text())
     validate_report(r3)
     assert r3["mode"] == "3dgs" and r3["input"]["name"] == "reef-dive.zip"
-    html3 = (copy / "output" / "report.html").read_text()
+    html3 = copy.report_html.read_text()
     assert "No water was removed" in html3 and "probe: the water changes nothing measurable" in html3
     assert "Held-out views: photo, model, ground truth" in html3
     for claim in ("<figcaption>restored J", "restored J PSNR", "restored J vs true"):  # shown for dualphys

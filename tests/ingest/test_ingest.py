@@ -15,6 +15,7 @@ import pytest
 
 from pipeline.ingest.archive import ArchiveError, ArchiveLimits, extract_archive
 from pipeline.ingest.intake import IngestConfig, IngestError, ingest
+from pipeline.job.layout import JobLayout
 from pipeline.scene.images import read_image, write_image
 
 REPO = Path(__file__).resolve().parents[2]
@@ -49,9 +50,9 @@ def test_good_zip_and_tar_ingest(tmp_path: Path, good) -> None:
     res = ingest(z, tmp_path / "job", IngestConfig())
     assert res.images == [f"dive__img_{i}.jpg" for i in range(4)]
     assert {i["file"] for i in res.ignored} == {"notes.txt", ".DS_Store"}
-    assert not (tmp_path / "job" / "upload").exists()
+    assert not JobLayout(tmp_path / "job").unpacked.exists()
     for name, data in good.items():  # JPEGs in display orientation are copied byte for byte
-        assert (tmp_path / "job" / "images" / name.replace("/", "__")).read_bytes() == data
+        assert (JobLayout(tmp_path / "job").images / name.replace("/", "__")).read_bytes() == data
 
     t = tmp_path / "set.tar.gz"
     with tarfile.open(t, "w:gz") as tf:
@@ -129,7 +130,8 @@ def test_hostile_archives_are_refused_and_leave_nothing(tmp_path: Path, good, ca
     assert exc.value.code == code, str(exc.value)
     created = _outside_files(tmp_path, before)
     assert not any("evil" in p or p.startswith("/etc") for p in created)
-    assert not (job / "upload").exists() or not any((job / "upload").iterdir())
+    unpacked = JobLayout(job).unpacked
+    assert not unpacked.exists() or not any(unpacked.iterdir())
     assert not any(job.rglob("*.jpg")) if job.exists() else True
 
 
@@ -155,7 +157,7 @@ def test_unicode_names_and_misnamed_files_are_normalised(tmp_path: Path, good) -
     z = _zip(tmp_path / "s.zip", {"récif/été 1.jpg": data[0], "récif/été 2.jpg": data[1], "ok/x.png": data[2]})
     res = ingest(z, tmp_path / "job")
     assert res.images == ["ok__x.jpg", "récif__été_1.jpg", "récif__été_2.jpg"]  # the JPEG named .png is a .jpg
-    img = read_image(tmp_path / "job" / "images" / "ok__x.jpg")
+    img = read_image(JobLayout(tmp_path / "job").images / "ok__x.jpg")
     assert img.shape == (24, 32, 3)
 
 
@@ -174,7 +176,7 @@ def test_exif_rotated_image_is_written_upright(tmp_path: Path) -> None:
         out.close()
     res = ingest(src, tmp_path / "job")
     assert res.images == ["r0.png", "r1.png", "r2.png"]
-    assert read_image(tmp_path / "job" / "images" / "r0.png").shape == (30, 20, 3)
+    assert read_image(JobLayout(tmp_path / "job").images / "r0.png").shape == (30, 20, 3)
 
 
 def test_real_survey_folder(tmp_path: Path) -> None:
@@ -255,7 +257,7 @@ def test_encrypted_zip_is_a_typed_refusal(tmp_path: Path, good) -> None:
     with pytest.raises(ArchiveError) as exc:
         ingest(z, tmp_path / "job")
     assert exc.value.code == "encrypted_archive" and "password" in str(exc.value)
-    assert not (tmp_path / "job" / "upload").exists()
+    assert not JobLayout(tmp_path / "job").unpacked.exists()
 
 
 @pytest.mark.parametrize("name", ["a" * 300 + ".jpg", "/".join(["d" * 200] * 6) + "/x.jpg"])
@@ -268,13 +270,13 @@ def test_over_long_member_name_is_refused_without_server_paths(tmp_path: Path, g
 
 
 def test_ingest_json_names_the_input_relative_to_the_job(tmp_path: Path, good) -> None:
-    job = tmp_path / "job"
-    (job / "input").mkdir(parents=True)
-    z = _zip(job / "input" / "archive", {**good, "dive/broken.jpg": good["dive/img_0.jpg"][:150]})
-    res = ingest(z, job)
-    written = json.loads((job / "ingest.json").read_text())
-    assert res.source == written["source"] == "input/archive"
+    job = JobLayout(tmp_path / "job")
+    job.input.mkdir(parents=True)
+    z = _zip(job.upload, {**good, "dive/broken.jpg": good["dive/img_0.jpg"][:150]})
+    res = ingest(z, job.root)
+    written = json.loads(job.ingest.read_text())
+    assert res.source == written["source"] == job.relative(job.upload) == "input/archive"  # the API's contract
     assert [s["file"] for s in res.skipped] == ["dive/broken.jpg"]
-    assert str(tmp_path) not in (job / "ingest.json").read_text()
+    assert str(tmp_path) not in job.ingest.read_text()
     outside = _zip(tmp_path / "set.zip", good)
     assert ingest(outside, tmp_path / "job2").source == "set.zip"

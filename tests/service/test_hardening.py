@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 from svc_helpers import job_log, job_status, small_jpegs, upload, wait_for, wait_job, zip_bytes
 
+from pipeline.job.layout import JobLayout
+
 pytestmark = pytest.mark.slow
 
 
@@ -98,8 +100,8 @@ def test_survey_folder_swapped_for_a_link_after_registration_is_not_followed(liv
         assert alice.get("/v1/jobs", params={"survey": sid}).json()["total"] == 0
         assert got["last_error_code"] == "path_changed" and "link" in got["last_error"], got
         new_jobs = set(os.listdir(live.data_dir / "jobs")) - jobs_before
-        assert not any((live.data_dir / "jobs" / j / "input").exists() for j in new_jobs if
-                       (live.data_dir / "jobs" / j / "manifest.json").exists()
+        assert not any(JobLayout(live.data_dir / "jobs" / j).input.exists() for j in new_jobs if
+                       JobLayout(live.data_dir / "jobs" / j).manifest.exists()
                        and job_status(alice, j)["survey_id"] == sid)
         # the folder becomes a folder again, with a sub-folder that is a link to the outside: never entered
         site.unlink()
@@ -109,7 +111,7 @@ def test_survey_folder_swapped_for_a_link_after_registration_is_not_followed(liv
         got = _scan_and_wait(alice, sid)
         assert got["last_error"] is None and [s["name"] for s in got["sets"]] == ["real-dive"], got
         (job,) = alice.get("/v1/jobs", params={"survey": sid}).json()["jobs"]
-        copied = live.data_dir / "jobs" / job["id"] / "input"
+        copied = JobLayout(live.data_dir / "jobs" / job["id"]).input
         assert sorted(_files_under(copied)) == sorted(marker)
         assert all(p.resolve().is_relative_to((live.data_dir / "jobs" / job["id"]).resolve())
                    for p in copied.rglob("*"))
@@ -202,5 +204,5 @@ def test_idempotency_key_checks_the_request_and_survives_redis_losing_it(live, r
     after = upload(c, archive, headers=key, preset="fast")
     assert after.status_code == 200 and after.json()["id"] == jid, after.text
     assert c.get("/v1/jobs", params={"limit": 1}).json()["total"] == total
-    assert not [p for p in (live.data_dir / "jobs").iterdir() if not (p / "manifest.json").exists()
+    assert not [p for p in (live.data_dir / "jobs").iterdir() if not JobLayout(p).manifest.exists()
                 and p.name.startswith("j")]  # the repeats' bodies were not kept

@@ -32,6 +32,8 @@ from svc_helpers import (
     zip_bytes,
 )
 
+from pipeline.job.layout import JobLayout
+
 pytestmark = pytest.mark.slow
 
 ITERATIONS = 400  # checkpoints every 80: time to kill the worker between two of them, short enough for CI
@@ -180,7 +182,7 @@ def test_cancel_during_training_then_the_worker_takes_the_next_job(live, scene_z
     took = time.monotonic() - t0
     assert done["state"] == "cancelled" and stage(done, "train")["status"] == "cancelled", done
     assert took < 10, took
-    assert (live.data_dir / "jobs" / a / "train" / "latest.pt").is_file()  # state kept for a retry
+    assert JobLayout(live.data_dir / "jobs" / a).checkpoint.is_file()  # state kept for a retry
     assert "training cancelled at iteration" in job_log(c, a)
     # the worker is free again and takes the next queued task: B's training (B's SfM ran while A's training
     # was queued behind it: stages of different jobs interleave in FIFO order)

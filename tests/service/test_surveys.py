@@ -48,7 +48,7 @@ def test_each_set_becomes_exactly_one_job(rt) -> None:
     m = rt.store.read(first[0])
     assert m.owner == "alice" and m.survey_id == survey.id and m.options["iterations"] == 10
     assert m.source["set"] == "dive-a" and m.state == "queued"
-    copied = sorted(p.name for p in (rt.store.job_dir(first[0]) / "input" / "dive-a").iterdir())
+    copied = sorted(p.name for p in (rt.store.layout(first[0]).input / "dive-a").iterdir())
     assert copied == sorted(p.name for p in (site / "dive-a").iterdir())
     assert rt.jobs.dispatcher.sent == [(first[0], "ingest", m.run_id)]
 
@@ -128,7 +128,7 @@ def _job_sets(rt, owner: str) -> dict[str, list[str]]:
     """Set name -> the image names copied into its job."""
     out = {}
     for m in rt.jobs.list(owner):
-        out[m.source["set"]] = sorted(p.name for p in (rt.store.job_dir(m.id) / "input").iterdir())
+        out[m.source["set"]] = sorted(p.name for p in rt.store.layout(m.id).input.iterdir())
     return out
 
 

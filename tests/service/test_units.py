@@ -200,7 +200,7 @@ def test_log_pages_end_on_whole_lines(tmp_path: Path) -> None:
             break
         offset = nxt
     assert offset == size and pages > 10 and text.count("\n") == 50
-    with open(tmp_path / "jabcdefgh" / "log.txt", "a") as f:
+    with open(store.layout("jabcdefgh").log, "a") as f:
         f.write("partial line without end")
     assert store.read_log("jabcdefgh", offset, 100) == ("", offset, size + 24)
 

@@ -16,6 +16,7 @@ import json
 
 import pytest
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions
 from pipeline.job.runner import run_job
 from pipeline.synth.photo import PhotoSynthConfig, default_textures_dir, generate_photo_scene
@@ -33,7 +34,7 @@ def test_photo_textured_water_keeps_its_scene_and_is_restored(tmp_path, preset, 
     scene = generate_photo_scene(PhotoSynthConfig(views=16, width=200, height=150, preset=preset, seed=0),
                                  tmp_path / "scene")
     run_job(tmp_path / "job", JobOptions(source=str(scene / "images"), iterations=1500))
-    r = json.loads((tmp_path / "job" / "output" / "report.json").read_text())
+    r = json.loads(JobLayout(tmp_path / "job").report_json.read_text())
     q, rest = r["quality"], r["restoration"]
     gains = [p["restored_psnr"] - p["input_psnr"] for p in rest["per_view"]]
     record_property("result", {"mode": r["mode"], "n": q["n_gaussians"], "budget": q["budget"],

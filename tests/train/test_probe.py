@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.config import SynthConfig
+from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions, StageContext
 from pipeline.scene.loader import load_images, load_scene
 from pipeline.scene.split import split_views
@@ -85,7 +86,7 @@ def _probe(tmp_path, preset: str) -> tuple[dict, float]:
     t0 = time.perf_counter()
     sel = select_mode(job, JobOptions(mode="auto"), train_scene, images, water, StageContext())
     seconds = time.perf_counter() - t0
-    assert json.loads((job / "train" / "selection.json").read_text()) == sel
+    assert json.loads(JobLayout(job).selection.read_text()) == sel
     return sel, seconds
 
 

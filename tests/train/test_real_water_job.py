@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions
 from pipeline.job.runner import run_job
 from pipeline.scene.images import read_image
@@ -50,11 +51,11 @@ def test_real_green_water_gets_a_medium_and_its_colour_back(tmp_path, record_pro
     for f in sorted(FRAMES.iterdir())[:N_FRAMES]:
         shutil.copy(f, src / f.name)
     run_job(tmp_path / "job", JobOptions(source=str(src), iterations=1500, max_width=200))
-    out = tmp_path / "job" / "output"
-    r = json.loads((out / "report.json").read_text())
+    job = JobLayout(tmp_path / "job")
+    r = json.loads(job.report_json.read_text())
     q = r["quality"]
-    rg_in, _, _ = _colour(out / "with_water")
-    rg, red, black = _colour(out / "restored")
+    rg_in, _, _ = _colour(job.export_folder("with_water"))
+    rg, red, black = _colour(job.export_folder("restored"))
     record_property("result", {"mode": r["mode"], "reason": r["selection"]["reason"], "rg": [rg_in, rg],
                                "clipped_red": red, "black": black, "far_share_max": q["far_share_max"]})
     assert r["mode"] in ("homogeneous", "dualphys"), r["selection"]["reason"]

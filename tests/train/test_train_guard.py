@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from pipeline.config import DensifyConfig, MediumConfig, SynthConfig, TrainConfig
+from pipeline.job.layout import CHECKPOINT_NAME, COLLAPSED_NAME, RECOVERY_NAME
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.synth.procedural import generate_scene
-from pipeline.train.guard import COLLAPSED_NAME, RECOVERY_NAME, ModelCollapsedError, safer_config, train_checked
+from pipeline.train.guard import ModelCollapsedError, safer_config, train_checked
 
 ITERATIONS = 120
 
@@ -73,7 +74,7 @@ def test_a_model_that_stays_blank_fails_with_model_collapsed(scene, tmp_path):
         train_checked(s, images, _cfg(), tmp_path, min_iterations=0,
                       hooks=[_blank_at(ITERATIONS - 10, [1, 1])])
     assert e.value.code == "model_collapsed"
-    assert (tmp_path / COLLAPSED_NAME).is_file() and (tmp_path / "latest.pt").is_file()  # both attempts kept
+    assert (tmp_path / COLLAPSED_NAME).is_file() and (tmp_path / CHECKPOINT_NAME).is_file()  # both attempts kept
 
 
 def test_a_short_run_is_warned_about_not_retried(scene, tmp_path):
