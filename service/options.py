@@ -2,11 +2,28 @@
 
 An unknown preset or mode is refused when the job or survey is created (a 422 with the reason), not later when
 a worker would fail on it; a survey registered with a bad option would otherwise fail every set it finds.
+
+The fields, their types, defaults and descriptions are the pipeline's :class:`pipeline.job.options.JobOptions`
+(declared once, there); this module adds only what the API checks on top: which of them a client may set and
+their bounds.
 """
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+import dataclasses
+import typing
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model, field_validator
+
+from pipeline.job.options import JobOptions
+
+# What a client may set (``source`` is the upload or the survey's set; ``ground_truth`` is for local runs only),
+# in the order the API documents them, with the API's bounds.
+CLIENT_OPTIONS: dict[str, dict[str, Any]] = {
+    "preset": {}, "mode": {}, "metric_scale": {"gt": 0}, "max_width": {"ge": 32, "le": 16384},
+    "iterations": {"ge": 1}, "seed": {"ge": 0, "le": 2**31 - 1},
+}
 
 
 def known_presets() -> list[str]:
@@ -21,20 +38,10 @@ def known_modes() -> list[str]:
     return list(JOB_MODES)
 
 
-class JobOptionsIn(BaseModel):
-    """Options of a job (the pipeline's JobOptions minus the source)."""
-
+class _ClientOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    preset: str = Field("fast", description="training preset: fast | balanced | paper")
-    mode: str = Field("auto", description="reconstruction mode: auto (a short probe picks) | 3dgs | homogeneous | "
-                                          "dualphys")
-    metric_scale: float | None = Field(None, gt=0, description="metres per scene unit, when known")
-    max_width: int = Field(400, ge=32, le=16384, description="images wider than this train at a downscale")
-    iterations: int | None = Field(None, ge=1, description="override the preset's iteration count")
-    seed: int = Field(0, ge=0, le=2**31 - 1)
-
-    @field_validator("preset", "mode")
+    @field_validator("preset", "mode", check_fields=False)
     @classmethod
     def _known(cls, v: str, info: ValidationInfo) -> str:
         choices = known_presets() if info.field_name == "preset" else known_modes()
@@ -44,6 +51,18 @@ class JobOptionsIn(BaseModel):
 
     def over_limit(self, max_iterations: int) -> str | None:
         """Why these options exceed the server's iteration limit, or None."""
-        if self.iterations is not None and self.iterations > max_iterations:
+        iterations = getattr(self, "iterations", None)
+        if iterations is not None and iterations > max_iterations:
             return f"iterations: at most {max_iterations}"
         return None
+
+
+def _client_fields() -> dict[str, Any]:
+    hints = typing.get_type_hints(JobOptions)
+    spec = {f.name: f for f in dataclasses.fields(JobOptions)}
+    return {name: (hints[name], Field(spec[name].default, description=spec[name].metadata.get("help"), **bounds))
+            for name, bounds in CLIENT_OPTIONS.items()}
+
+
+JobOptionsIn = create_model("JobOptionsIn", __base__=_ClientOptions, __module__=__name__, **_client_fields())
+JobOptionsIn.__doc__ = "Options of a job (the pipeline's JobOptions minus the source)."

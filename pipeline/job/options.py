@@ -23,12 +23,16 @@ class JobOptions:
     """What a user chooses for a job (CLI flags / API form fields)."""
 
     source: str = ""  # archive file or image folder to ingest
-    preset: str = "fast"  # training preset: fast | balanced | paper
-    mode: str = "auto"  # reconstruction mode, one of JOB_MODES
-    max_width: int = 400  # images wider than this are trained at an integer downscale (CPU budget)
-    metric_scale: float | None = None  # metres per scene unit, when the user knows it
-    iterations: int | None = None  # override the preset's iteration count (tests, quick looks)
-    seed: int = 0
+    # What a client may set (the API's form fields are built from these: service/options.py; "help" is their
+    # description there).
+    preset: str = field(default="fast", metadata={"help": "training preset: fast | balanced | paper"})
+    mode: str = field(default="auto", metadata={
+        "help": "reconstruction mode: auto (a short probe picks) | 3dgs | homogeneous | dualphys"})
+    max_width: int = field(default=400, metadata={
+        "help": "images wider than this train at a downscale"})  # an integer one (CPU budget)
+    metric_scale: float | None = field(default=None, metadata={"help": "metres per scene unit, when known"})
+    iterations: int | None = field(default=None, metadata={"help": "override the preset's iteration count"})
+    seed: int = field(default=0, metadata={"help": "the seed of SfM and training"})
     # A generated scene folder (pipeline.synth.procedural) to score against; unset: found next to an ``images``
     # source folder when that sits in a generated scene (pipeline.synth.ground_truth).
     ground_truth: str | None = None

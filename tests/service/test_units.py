@@ -222,3 +222,20 @@ def test_worker_and_api_import_no_torch(tmp_path: Path) -> None:
     env.update(DUALPHYS_API_KEYS=json.dumps({"a-long-enough-api-key": "alice"}), DUALPHYS_DATA_DIR=str(tmp_path))
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_client_options_are_the_pipelines_job_options():
+    """The API's form fields are JobOptions' own (declared once): same names, defaults and help; the API adds
+    only bounds and the choice of fields a client may set."""
+    import dataclasses
+
+    from pipeline.job.options import JobOptions
+    from service.options import CLIENT_OPTIONS, JobOptionsIn
+
+    spec = {f.name: f for f in dataclasses.fields(JobOptions)}
+    assert set(JobOptionsIn.model_fields) == set(CLIENT_OPTIONS) <= set(spec)
+    for name, f in JobOptionsIn.model_fields.items():
+        assert f.default == spec[name].default and f.description == spec[name].metadata["help"]
+    assert JobOptions(**JobOptionsIn().model_dump()) == JobOptions()
+    with pytest.raises(ValueError, match="max_width"):
+        JobOptionsIn(max_width=8)
