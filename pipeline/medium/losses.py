@@ -83,12 +83,6 @@ def log_anchor(value: Tensor, reference: Tensor) -> Tensor:
     return ((value.clamp(min=1e-6).log() - reference.clamp(min=1e-6).log()) ** 2).sum()
 
 
-def dark_channel(J: Tensor, patch: int = 7) -> Tensor:
-    """min over channels and a patch×patch window. [N,3,H,W] → [N,1,H,W]"""
-    m = J.amin(dim=1, keepdim=True)
-    return -F.max_pool2d(-m, patch, stride=1, padding=patch // 2)[..., : J.shape[2], : J.shape[3]]
-
-
 def scattering_prior(B: Tensor, observed: Tensor, alpha: Tensor) -> Tensor:
     """L_scattering, the veil bound: mean relu(α·B − I). B, I [N,3,H,W]; alpha [N,1,H,W] → []"""
     return F.relu(alpha * B - observed).mean()

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from pipeline.config import MediumConfig
 from pipeline.medium.estimate import measure_water
-from pipeline.medium.losses import LossWeights, basic_loss, loss_terms
+from pipeline.medium.losses import LossWeights, loss_terms
 from pipeline.medium.model import Medium, MediumOutput
 from pipeline.scene.types import Scene, View, ray_length_factor
 from pipeline.train.quality import view_point_ranges
@@ -249,11 +249,6 @@ class MediumTerm:
             b_ref = (ap * t("B_inf") * (1 - torch.exp(-t("beta_B") * Dp))).mean(dims)
         return {"attenuation": (out.beta_eff, t("beta_D").flatten()),
                 "backscatter": ((alpha * out.B).mean(dims), b_ref)}
-
-    @staticmethod
-    def warmup_loss(image: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
-        """Before the medium switches on, J alone is fitted to the photo (paper §5: medium on at 10k of 30k)."""
-        return basic_loss(_nchw(image), _nchw(target), ssim_weight)
 
     def step(self) -> None:
         self.optimizer.step()

@@ -32,7 +32,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 from pipeline.config import SfmConfig
-from pipeline.scene.align import align_to_reference
 from pipeline.scene.colmap import quiet_pycolmap
 from pipeline.scene.images import (
     IMAGE_EXTENSIONS,
@@ -470,7 +469,6 @@ __all__ = [
     "SfmSummary",
     "TooFewImagesError",
     "TooFewRegisteredError",
-    "align_to_reference",
     "choose_matcher",
     "is_numbered_sequence",
     "run_sfm",

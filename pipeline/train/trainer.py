@@ -32,7 +32,7 @@ from pipeline.splat.gaussians import GAUSSIAN_KEYS
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.train.hooks import Hook, ProgressFn, checkpoint_hook, eval_hook, log_hook, progress_hook
 from pipeline.train.image_losses import l1, ssim
-from pipeline.train.render import RenderOutput, ViewOutputs, render_gaussians, render_outputs, render_view, view_tensors
+from pipeline.train.render import RenderOutput, ViewOutputs, render_gaussians, render_outputs, view_tensors
 from pipeline.train.setup import (
     ImageLike,
     active_sh_degree,
@@ -52,8 +52,6 @@ __all__ = [
     "Trainer",
     "TrainingCancelled",
     "photometric_losses",
-    "render_view",
-    "scene_extent",
     "train",
 ]
 
@@ -259,10 +257,6 @@ class Trainer:
 
     def save(self, path: str | Path) -> Path:
         return save_checkpoint(path, self.state_dict())
-
-    def load(self, path: str | Path) -> None:
-        self.load_state_dict(load_checkpoint(path, map_location=self.device))
-        log.info("resumed from %s at iteration %d", path, self.iteration)
 
 
 def config_changes(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:
