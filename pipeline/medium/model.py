@@ -109,7 +109,10 @@ class Medium(nn.Module):
                                       self.lam, self.delta)
 
     def forward(self, J: Tensor, D: Tensor, alpha: Tensor | None = None) -> MediumOutput:
-        """J [N,3,H,W] rendered (premultiplied) radiance; D [N,1,H,W] distance along the ray; alpha [N,1,H,W]."""
+        """J [N,3,H,W] rendered (premultiplied) radiance; D [N,1,H,W] distance along the ray; alpha [N,1,H,W].
+
+        I is eq. 4 over the water (:func:`~pipeline.medium.formation.composite_over_water`): J·A + alpha·B where
+        the Gaussians cover the pixel, the veiling light B∞ where they do not (no alpha: fully covered)."""
         if J.ndim != 4 or J.shape[1] != 3 or D.shape != (J.shape[0], 1, *J.shape[2:]):
             raise ValueError(f"expected J [N,3,H,W] and D [N,1,H,W], got {tuple(J.shape)} and {tuple(D.shape)}")
         A, beta_eff = self.attenuation(J, D)
