@@ -1,11 +1,10 @@
-"""Image comparison primitives: L1, SSIM, PSNR. Pure tensor functions, channel-last images.
+"""Image comparison primitives: L1, SSIM. Pure tensor functions, channel-last images (PSNR is an evaluation
+metric: ``pipeline.evaluate.metrics``).
 
 Images are ``[..., H, W, C]`` floats in [0, 1] (what the rasterizer returns), any leading batch shape.
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 import torch.nn.functional as F
@@ -64,21 +63,3 @@ def ssim_map(a: Tensor, b: Tensor, window: int = SSIM_WINDOW, sigma: float = SSI
 def ssim(a: Tensor, b: Tensor) -> Tensor:
     """Mean SSIM over pixels, channels and batch. [..., H, W, C] x2 -> []"""
     return ssim_map(a, b).mean()
-
-
-def psnr_from_mse(mse: float) -> float:
-    """PSNR in dB for signals in [0, 1]; +inf for a perfect match."""
-    return math.inf if mse <= 0 else -10.0 * math.log10(mse)
-
-
-def pooled_psnr(pairs: list[tuple[Tensor, Tensor]]) -> float:
-    """PSNR of the MSE pooled over every pixel of every (render, target) pair (not a mean of per-view PSNRs).
-    Inputs are clamped by the caller if needed."""
-    if not pairs:
-        raise ValueError("pooled_psnr needs at least one image pair")
-    sq, count = 0.0, 0
-    for a, b in pairs:
-        _check_pair(a, b)
-        sq += float((a.detach().double() - b.detach().double()).square().sum())
-        count += a.numel()
-    return psnr_from_mse(sq / count)
