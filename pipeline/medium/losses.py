@@ -44,19 +44,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from pipeline.train.image_losses import ssim
+from pipeline.train.image_losses import photometric_losses
 
 EPS = 1e-6
 
 
-def _nhwc(x: Tensor) -> Tensor:
-    return x.permute(0, 2, 3, 1)
-
-
 def basic_loss(render: Tensor, target: Tensor, ssim_weight: float = 0.2) -> Tensor:
-    """L_basic = (1 − w)·L1 + w·(1 − SSIM), w = 0.2 (3DGS). [N,3,H,W] x2 → []"""
-    return (1 - ssim_weight) * (render - target).abs().mean() + ssim_weight * (
-        1 - ssim(_nhwc(render), _nhwc(target)))
+    """L_basic = (1 − w)·L1 + w·(1 − SSIM), w = 0.2 (3DGS): the trainer's photometric loss, summed. [N,3,H,W] x2 → []"""
+    terms = photometric_losses(render, target, ssim_weight, channels_first=True)
+    return terms["l1"] + terms["dssim"]
 
 
 def consistency_loss(A: Tensor, B_frac: Tensor, D: Tensor, depth_scale: float, mu: float = 0.1) -> Tensor:

@@ -1,5 +1,5 @@
-"""Image comparison primitives: L1, SSIM. Pure tensor functions, channel-last images (PSNR is an evaluation
-metric: ``pipeline.evaluate.metrics``).
+"""Image comparison primitives: L1, SSIM and the 3DGS loss made of them. Pure tensor functions, channel-last
+images (PSNR is an evaluation metric: ``pipeline.evaluate.metrics``).
 
 Images are ``[..., H, W, C]`` floats in [0, 1] (what the rasterizer returns), any leading batch shape.
 """
@@ -63,3 +63,15 @@ def ssim_map(a: Tensor, b: Tensor, window: int = SSIM_WINDOW, sigma: float = SSI
 def ssim(a: Tensor, b: Tensor) -> Tensor:
     """Mean SSIM over pixels, channels and batch. [..., H, W, C] x2 -> []"""
     return ssim_map(a, b).mean()
+
+
+def photometric_losses(render: Tensor, target: Tensor, ssim_weight: float, *,
+                       channels_first: bool = False) -> dict[str, Tensor]:
+    """The 3DGS photometric loss as named, already-weighted terms (sum them once): (1 − w)·L1 and w·(1 − SSIM).
+    Each caller keeps its own w (``TrainConfig.ssim_weight`` before the medium starts, ``LossWeights.ssim_weight``
+    in eq. 13's L_basic). [..., H, W, C] x2, or [N, C, H, W] x2 with ``channels_first`` -> {"l1": [], "dssim": []}"""
+    hwc = (lambda x: x.permute(0, 2, 3, 1)) if channels_first else (lambda x: x)
+    return {
+        "l1": (1.0 - ssim_weight) * l1(render, target),
+        "dssim": ssim_weight * (1.0 - ssim(hwc(render), hwc(target))),
+    }
