@@ -31,7 +31,7 @@ import torch
 
 from pipeline.evaluate.metrics import coefficient_error, mean_ssim, pooled_psnr, scale_aligned_depth_error
 from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
-from pipeline.scene.types import View
+from pipeline.scene.types import View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel
 from pipeline.train.render import ViewOutputs, render_outputs
@@ -47,12 +47,6 @@ class Rendered:
     view: View
     out: ViewOutputs
     ms: float  # wall milliseconds to render this view (Gaussians + medium)
-
-
-def scaled_view(view: View, downscale: int) -> View:
-    """``view`` at the training resolution (camera divided by the job's integer downscale)."""
-    return view if downscale == 1 else View(view.name, view.camera.scaled(1.0 / downscale), view.R, view.t,
-                                            view.image_path)
 
 
 def render_timed(model: TrainedModel, views: Sequence[View], backend: str = "auto") -> list[Rendered]:

@@ -18,8 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.evaluate.evaluation import TRUE_CAMERA_DIR, json_safe, scaled_view, stage_timings
+from pipeline.evaluate.evaluation import TRUE_CAMERA_DIR, json_safe, stage_timings
 from pipeline.job.markers import atomic_write_json, atomic_write_text
+from pipeline.scene.types import scaled_view
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from pipeline.job.layout import EXPORT_FOLDERS
 from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
-from pipeline.scene.types import View
+from pipeline.scene.types import View, scaled_view
 
 log = logging.getLogger(__name__)
 
@@ -25,8 +25,7 @@ def training_views(job: Path, state: dict) -> list[View]:
     from pipeline.scene.loader import load_scene
 
     down = int(state["config"].get("downscale", 1))
-    return [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
-            for v in load_scene(job / "scene").views]
+    return [scaled_view(v, down) for v in load_scene(job / "scene").views]
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:

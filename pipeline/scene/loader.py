@@ -25,14 +25,13 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.scene.colmap import UnsupportedCameraError, has_model, quiet_pycolmap, read_colmap
 from pipeline.scene.images import read_image, resize_area_to
-from pipeline.scene.types import Scene, View
+from pipeline.scene.types import Scene, View, scaled_view
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +103,7 @@ def load_scene(
             f"{images_dir} (e.g. {', '.join(missing[:3])})"
         )
     if downscale != 1.0:
-        scene.views = [replace(v, camera=v.camera.scaled(1.0 / downscale)) for v in scene.views]
+        scene.views = [scaled_view(v, downscale) for v in scene.views]
     scene.root = root
     log.info(
         "loaded %d views, %d points from %s (images %s)",
