@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from pipeline.config import MediumConfig
 from pipeline.medium.attenuation import EdgePerception, rgb_guided_attenuation
 from pipeline.medium.formation import composite_over_water, homogeneous_backscatter, transmission
 from pipeline.medium.scattering import MultiScaleFeatures, depth_confidence, depth_edge_factor, multiscale_backscatter
@@ -78,6 +80,13 @@ class Medium(nn.Module):
         self.w.requires_grad_(mode == "dualphys")
         self.edge = EdgePerception() if self.rgb_attenuation else None
         self.multiscale = MultiScaleFeatures() if self.multiscale_scattering else None
+
+    @classmethod
+    def from_config(cls, mode: str, cfg: MediumConfig, depth_scale: float, **init: Any) -> Medium:
+        """The medium ``cfg`` describes (modules, modulation strengths) for a scene with this depth normaliser;
+        ``init``: the starting coefficients (``init_beta``, ``init_binf``, ``init_beta_b``), else the defaults."""
+        return cls(mode, rgb_attenuation=cfg.rgb_attenuation, multiscale_scattering=cfg.multiscale_scattering,
+                   gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=depth_scale, **init)
 
     @property
     def beta_D(self) -> Tensor:  # [3] 1/scene-unit

@@ -176,10 +176,7 @@ class MediumTerm:
             if est is not None:
                 self.estimate = est.to_dict()
                 init = {"init_beta": est.beta_D, "init_beta_b": est.beta_B, "init_binf": est.B_inf}
-        self.medium = Medium(
-            mode, rgb_attenuation=cfg.rgb_attenuation, multiscale_scattering=cfg.multiscale_scattering,
-            gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=self.depth_scale, **init,  # type: ignore[arg-type]
-        ).to(device)
+        self.medium = Medium.from_config(mode, cfg, self.depth_scale, **init).to(device)
         self.medium.water_factor.fill_(cfg.water_factor)
         self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
                     for v in views]  # per view [1, 1, H, W]
