@@ -90,6 +90,13 @@ def scale_aligned_depth_error(pred: Sequence[np.ndarray], gt: Sequence[np.ndarra
             "n_pixels": int(valid.sum())}
 
 
+def per_metre(coefficients: Sequence[float], metres_per_unit: float) -> list[float]:
+    """Attenuation or backscatter coefficients from 1/scene-unit to 1/m, given how many metres one scene unit is
+    (the alignment to the truth, or the user's metric scale)."""
+    per_m = 1.0 / metres_per_unit
+    return [b * per_m for b in coefficients]
+
+
 def coefficient_error(estimated: Sequence[float], true: Sequence[float]) -> dict[str, list[float]]:
     """Per-channel absolute and relative error of a water coefficient (β_D, β_B or B∞)."""
     e, t = np.asarray(estimated, np.float64), np.asarray(true, np.float64)

@@ -11,6 +11,7 @@ import torch
 from pipeline.evaluate.metrics import (
     coefficient_error,
     mean_ssim,
+    per_metre,
     pooled_mse,
     pooled_psnr,
     psnr,
@@ -86,3 +87,9 @@ def test_coefficient_error() -> None:
     e = coefficient_error([0.5, 0.2, 0.1], [0.55, 0.17, 0.11])
     assert e["abs_error"] == pytest.approx([0.05, 0.03, 0.01])
     assert e["rel_error"][0] == pytest.approx(0.05 / 0.55)
+
+
+def test_per_metre_divides_by_the_metres_per_scene_unit() -> None:
+    # one scene unit is 2 m: a coefficient of 0.5 per unit is 0.25 per metre
+    assert per_metre([0.5, 0.2, 0.1], 2.0) == pytest.approx([0.25, 0.1, 0.05])
+    assert per_metre((), 3.0) == []
