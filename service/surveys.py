@@ -56,6 +56,7 @@ from typing import BinaryIO
 from pydantic import BaseModel, Field, ValidationError
 
 from pipeline.job.markers import atomic_write_text
+from pipeline.scene.images import DECODABLE_EXTENSIONS
 
 from .manifest import Manifest
 from .options import JobOptionsIn
@@ -63,8 +64,7 @@ from .safe_fs import FolderTree
 
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".webp", ".bmp", ".jp2", ".jxl",
-                            ".dpx", ".tga", ".ppm", ".pgm", ".hdr"})
+IMAGE_SUFFIXES = DECODABLE_EXTENSIONS
 HASH_CHUNK = 1 << 20
 # Exif tags (CIPA DC-008): the Exif sub-IFD pointer in IFD0, and the capture-time tags inside it
 TAG_EXIF_IFD, TAG_DATETIME_ORIGINAL, TAG_OFFSET_ORIGINAL, TAG_SUBSEC_ORIGINAL = 0x8769, 0x9003, 0x9011, 0x9291

@@ -35,6 +35,7 @@ from pipeline.config import SfmConfig
 from pipeline.scene.colmap import quiet_pycolmap
 from pipeline.scene.images import (
     IMAGE_EXTENSIONS,
+    JPEG_EXTENSIONS,
     ImageReadError,
     image_orientation,
     list_images,
@@ -292,7 +293,7 @@ def _stage_oriented(
     for p in good:
         if p in rotated:
             write_image(
-                stage / p.name, read_image(p), bits=8 if p.suffix.lower() in (".jpg", ".jpeg") else None
+                stage / p.name, read_image(p), bits=8 if p.suffix.lower() in JPEG_EXTENSIONS else None
             )
         else:
             os.symlink(p.resolve(), stage / p.name)
