@@ -1,5 +1,5 @@
 """Render a trained job again (``dualphys render``): its own cameras, a chosen few, or novel cameras on a smooth
-path through them. The rendering itself is :func:`pipeline.train.model.export_views` (the export stage's)."""
+path through them. The rendering itself is :func:`pipeline.export.views.export_views` (the export stage's)."""
 
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ grey-world prior, which makes a sandy seabed grey). The same idea underlies Sea-
 estimates (Akkaynak & Treibitz 2019); here the multi-view tracks of the sparse model replace its depth map.
 
 The medium starts training at these coefficients, and ``L_attenuation`` keeps the effective global β_D near
-them (``pipeline.medium.losses.attenuation_anchor``): the medium networks still learn the spatial modulation of
+them (``pipeline.medium.losses.log_anchor``): the medium networks still learn the spatial modulation of
 eqs. 5 and 8 around them. Ranges are distances along the ray in scene units, so the coefficients are in
 1/scene-unit, like the medium's.
 

@@ -1,6 +1,6 @@
 """The medium as a module: the water between the camera and the splatted scene.
 
-Modes (``MediumConfig.mode``):
+Modes (``TrainConfig.mode``; ``MediumConfig`` holds the medium's settings):
 - ``3dgs``: no medium, I = J (composited over the background colour by the rasterizer).
 - ``homogeneous``: one global per-channel β_D, β_B, B∞ (eq. 3), the medium of SeaThru-style methods.
 - ``dualphys``: eq. 5 attenuation and eq. 8 backscatter, each module switchable for the ablation table.

@@ -14,8 +14,9 @@ SeaThru-NeRF sets, SIMPLE_RADIAL from a plain COLMAP run, ...) is undistorted to
 files are unchanged (size and mtime fingerprint).
 
 Resolution: ``downscale`` is a divisor (2 = half width and height, like 3DGS's ``-r 2``). It scales the
-cameras with :meth:`Camera.scaled`; the view's camera is then the single source of truth for the image
-size, and :func:`load_view_image` / :func:`load_images` read each file and area-average it down to that size.
+cameras with :meth:`~pipeline.scene.types.Camera.scaled` (:func:`~pipeline.scene.types.scaled_view`); the view's
+camera is then the single source of truth for the image size, and :func:`load_view_image` / :func:`load_images`
+read each file and area-average it down to that size.
 """
 
 from __future__ import annotations
