@@ -5,7 +5,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | sha1sum | cut -c1-12)
 
-# Torch's and numba's OpenMP pools fight under load unless waiting threads sleep (shared/notes).
+# Torch's and numba's OpenMP pools fight under load unless waiting threads sleep (docs/DECISIONS.md, "Numbers
+# behind code comments", thread pools).
 export OMP_WAIT_POLICY := PASSIVE
 export PIP_DISABLE_PIP_VERSION_CHECK := 1
 

@@ -2,9 +2,9 @@
 
     python bench/raster.py [--json] [--repeats 5]
 
-Scene: shared/notes/cpu-backend-measurements.md's (``pipeline.splat.random_scene``), opacities uniform in
+Scene: the cpu backend's measurement scene (``pipeline.splat.random_scene``), opacities uniform in
 [0.05, 0.95], L1 loss against a random image, full backward to means, quats, scales, opacities, colours.
-Projection is included in both backends' times; SH is not (the colours are plain RGB, as in the notes' tables).
+Projection is included in both backends' times; SH is not (the colours are plain RGB, as in those measurements).
 Reference cases estimated above ``--ref-max-pairs`` (pixel, Gaussian) pairs are skipped (each would take tens of
 seconds and several GB) and listed. Per-case peak RSS comes from VmHWM, reset before each case.
 With ``--json`` the last stdout line is one JSON object. Other jobs on the machine inflate wall times (2 to 4x

@@ -95,6 +95,7 @@ def _db(x: float | None) -> str:
 def cmd_demo(args: argparse.Namespace) -> int:
     """Generate a scene with known water and run the job on it end to end."""
     from pipeline.config import SynthConfig
+    from pipeline.evaluate.metrics import per_metre
     from pipeline.job.layout import JobLayout
     from pipeline.job.options import JobOptions, StageContext
     from pipeline.job.runner import run_job
@@ -139,7 +140,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                   f"{_db(seen['restored_psnr'])} (the photos: {_db(seen['input_psnr'])})")
     if coef:
         # SfM scenes have no metric scale: one scene unit is errs['scale'] metres (similarity to the truth).
-        metric = [b / errs["scale"] for b in coef["beta_D"]]
+        metric = per_metre(coef["beta_D"], errs["scale"])
         print("      recovered beta_D (1/m, via the alignment's scale): "
               + ", ".join(f"{c} {m:.3f} (true {t:.3f})" for c, m, t in zip("RGB", metric, truth.beta_D)))
     print(f"      outputs: {job.output} ({job.ply.name}, restored/, with_water/, attenuation/, backscatter/, depth/)")

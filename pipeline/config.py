@@ -99,9 +99,8 @@ class DensifyConfig:
 
         ``refine_every`` does not scale: it is the window of views whose gradients are averaged before a
         Gaussian grows, and every refinement grows all Gaussians above the threshold, so scaling it multiplies
-        growth (the "fast" run went from 3k to 245k Gaussians in 250 iterations on the 24-view synthetic scene).
-        ``reset_every`` scales but stays >= 10 refinements, so opacities recover between resets (same scene,
-        fast preset: held-out 20.3 dB with a reset every 300 iterations, 21.7 dB every 1000).
+        growth. ``reset_every`` scales but stays >= 10 refinements, so opacities recover between resets (both
+        measured: docs/DECISIONS.md, "Numbers behind code comments").
         """
         return dataclasses.replace(
             self,

@@ -1,6 +1,6 @@
 """Receiving an upload without letting Starlette spool it: the request body is streamed straight into the job
 folder with a byte counter (Starlette's own multipart handling writes the whole file to TMPDIR first and has no
-size cap; see shared/notes).
+size cap; docs/DECISIONS.md, "Numbers behind code comments").
 
 Two shapes are accepted on ``POST /v1/jobs``:
 

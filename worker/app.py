@@ -2,7 +2,8 @@
 
 Importing this module creates the app object and nothing else: the configuration is read from the
 ``DUALPHYS_*`` environment only when Celery first needs it, and no task module imports torch (the stage
-functions load it inside the prefork child that runs them; see shared/notes on prefork + torch OpenMP).
+functions load it inside the prefork child that runs them: a child forked after torch ran hangs; docs/DECISIONS.md,
+"Numbers behind code comments").
 
 Queues: ``cpu`` (every stage but train, and train unless ``DUALPHYS_TRAIN_QUEUE=gpu``), ``gpu`` (train on GPU
 workers), ``surveys`` (folder scans from beat). The message contract (broker, serialisation, exchange, queues)

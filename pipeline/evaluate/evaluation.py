@@ -29,10 +29,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.evaluate.metrics import coefficient_error, mean_ssim, pooled_psnr, scale_aligned_depth_error
+from pipeline.evaluate.metrics import (
+    coefficient_error,
+    mean_ssim,
+    per_metre,
+    pooled_psnr,
+    scale_aligned_depth_error,
+)
 from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
 from pipeline.job.layout import JobLayout
-from pipeline.scene.types import View
+from pipeline.scene.types import View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel
 from pipeline.train.render import ViewOutputs, render_outputs
@@ -47,12 +53,6 @@ class Rendered:
     view: View
     out: ViewOutputs
     ms: float  # wall milliseconds to render this view (Gaussians + medium)
-
-
-def scaled_view(view: View, downscale: int) -> View:
-    """``view`` at the training resolution (camera divided by the job's integer downscale)."""
-    return view if downscale == 1 else View(view.name, view.camera.scaled(1.0 / downscale), view.R, view.t,
-                                            view.image_path)
 
 
 def render_timed(model: TrainedModel, views: Sequence[View], backend: str = "auto") -> list[Rendered]:
@@ -136,10 +136,9 @@ def _coefficients(medium: dict, truth: dict, metres_per_unit: float) -> dict[str
     """Recovered β_D, β_B (1/scene-unit -> 1/m) and B∞ against the truth; None without a medium."""
     if not medium or "beta_D" not in medium:
         return None
-    per_m = 1.0 / metres_per_unit
     return {
-        "beta_D": coefficient_error([b * per_m for b in medium["beta_D"]], truth["beta_D"]),
-        "beta_B": coefficient_error([b * per_m for b in medium["beta_B"]], truth["beta_B"]),
+        "beta_D": coefficient_error(per_metre(medium["beta_D"], metres_per_unit), truth["beta_D"]),
+        "beta_B": coefficient_error(per_metre(medium["beta_B"], metres_per_unit), truth["beta_B"]),
         "B_inf": coefficient_error(medium["B_inf"], truth["B_inf"]),
         "units": {"beta_D": "1/m", "beta_B": "1/m", "B_inf": "linear intensity [0, 1]"},
     }

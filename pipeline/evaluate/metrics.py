@@ -10,17 +10,28 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
-from pipeline.train.image_losses import psnr_from_mse
 from pipeline.train.image_losses import ssim as _ssim
 
+ImagePair = tuple[np.ndarray, np.ndarray] | tuple[torch.Tensor, torch.Tensor]
 
-def pooled_mse(pairs: Sequence[tuple[np.ndarray, np.ndarray]], masks: Sequence[np.ndarray] | None = None) -> float:
-    """Mean squared error over every pixel of every (prediction, target) pair, each [H, W, 3] in [0, 1]; with
-    ``masks`` ([H, W] bool per pair) only over the pixels they keep (NaN when they keep none)."""
+
+def _float64(pred: np.ndarray | torch.Tensor, gt: np.ndarray | torch.Tensor) -> tuple[Any, Any]:
+    """The pair in float64, as tensors when either is one (summed by torch, as training's held-out curve always
+    was) and as arrays otherwise (summed by numpy)."""
+    if isinstance(pred, torch.Tensor) or isinstance(gt, torch.Tensor):
+        return torch.as_tensor(pred).detach().double(), torch.as_tensor(gt).detach().double()
+    return np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+
+
+def pooled_mse(pairs: Sequence[ImagePair], masks: Sequence[np.ndarray] | None = None) -> float:
+    """Mean squared error over every pixel of every (prediction, target) pair, each [H, W, 3] in [0, 1] (numpy
+    arrays or torch tensors); with ``masks`` ([H, W] bool per pair) only over the pixels they keep (NaN when
+    they keep none)."""
     if not pairs:
         raise ValueError("no image pairs to score")
     if masks is not None and len(masks) != len(pairs):
@@ -28,22 +39,26 @@ def pooled_mse(pairs: Sequence[tuple[np.ndarray, np.ndarray]], masks: Sequence[n
     se, n = 0.0, 0
     for k, (pred, gt) in enumerate(pairs):
         if pred.shape != gt.shape:
-            raise ValueError(f"prediction {pred.shape} and target {gt.shape} differ")
-        d = np.asarray(pred, np.float64) - np.asarray(gt, np.float64)
+            raise ValueError(f"prediction {tuple(pred.shape)} and target {tuple(gt.shape)} differ")
+        a, b = _float64(pred, gt)
+        d = a - b
         if masks is not None:
             if masks[k].shape != d.shape[:2]:
-                raise ValueError(f"mask {masks[k].shape} does not fit image {d.shape}")
-            d = d[masks[k]]
+                raise ValueError(f"mask {masks[k].shape} does not fit image {tuple(d.shape)}")
+            d = d[torch.as_tensor(masks[k]) if isinstance(d, torch.Tensor) else masks[k]]
         se += float((d * d).sum())
-        n += d.size
+        n += math.prod(d.shape)
     return se / n if n else math.nan
 
 
-psnr = psnr_from_mse  # PSNR in dB for images in [0, 1] (inf for a perfect match)
+def psnr(mse: float) -> float:
+    """PSNR in dB for images in [0, 1]; +inf for a perfect match."""
+    return math.inf if mse <= 0 else -10.0 * math.log10(mse)
 
 
-def pooled_psnr(pairs: Sequence[tuple[np.ndarray, np.ndarray]], masks: Sequence[np.ndarray] | None = None) -> float:
-    """PSNR of the pooled MSE (over the masked pixels when ``masks`` are given; NaN when none are kept)."""
+def pooled_psnr(pairs: Sequence[ImagePair], masks: Sequence[np.ndarray] | None = None) -> float:
+    """PSNR of the pooled MSE (over the masked pixels when ``masks`` are given; NaN when none are kept): not a
+    mean of per-view PSNRs. Inputs are clamped by the caller if needed."""
     mse = pooled_mse(pairs, masks)
     return math.nan if math.isnan(mse) else psnr(mse)
 
@@ -73,6 +88,13 @@ def scale_aligned_depth_error(pred: Sequence[np.ndarray], gt: Sequence[np.ndarra
     err = np.abs(s * p - g)
     return {"scale": s, "abs_error": float(err.mean()), "rel_error": float((err / g).mean()),
             "n_pixels": int(valid.sum())}
+
+
+def per_metre(coefficients: Sequence[float], metres_per_unit: float) -> list[float]:
+    """Attenuation or backscatter coefficients from 1/scene-unit to 1/m, given how many metres one scene unit is
+    (the alignment to the truth, or the user's metric scale)."""
+    per_m = 1.0 / metres_per_unit
+    return [b * per_m for b in coefficients]
 
 
 def coefficient_error(estimated: Sequence[float], true: Sequence[float]) -> dict[str, list[float]]:

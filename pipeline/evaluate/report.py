@@ -18,9 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.evaluate.evaluation import json_safe, scaled_view, stage_timings
+from pipeline.evaluate.evaluation import json_safe, stage_timings
+from pipeline.evaluate.metrics import per_metre
 from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
 from pipeline.job.markers import atomic_write_json, atomic_write_text
+from pipeline.scene.types import scaled_view
 
 log = logging.getLogger(__name__)
 
@@ -52,10 +54,8 @@ def water_coefficients(medium: dict | None, metres_per_unit: float | None) -> di
         return None
     est = medium.get("estimate")
     unc = (est or {}).get("uncertainty") or {}
-    per_m = 1.0 / metres_per_unit if metres_per_unit else None
     out: dict[str, Any] = {}
     for k in ("beta_D", "beta_B", "B_inf"):
-        metric = per_m is not None and k != "B_inf"
         entry: dict[str, Any] = {
             "learned": medium[k], "units": "1/scene-unit" if k != "B_inf" else "linear intensity",
             "measured": est.get(k) if est else None,
@@ -63,8 +63,8 @@ def water_coefficients(medium: dict | None, metres_per_unit: float | None) -> di
             "source": unc.get(k, {}).get("source") or (
                 None if est else ["not measured (too few points seen twice): grey-world prior"] * 3),
             "sigma_scale": (unc.get("scale") or {}).get(k)}
-        if metric:
-            entry["learned_per_metre"] = [b * per_m for b in medium[k]]
+        if metres_per_unit and k != "B_inf":
+            entry["learned_per_metre"] = per_metre(medium[k], metres_per_unit)
         out[k] = entry
     out["prior"] = unc.get("prior")
     return out
@@ -99,8 +99,8 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
     model = {**ev["model"], "metres_per_unit": scale}
     medium = model.get("medium")
     if medium and scale:
-        model["medium_per_metre"] = {"beta_D": [b / scale for b in medium["beta_D"]],
-                                     "beta_B": [b / scale for b in medium["beta_B"]], "B_inf": medium["B_inf"],
+        model["medium_per_metre"] = {"beta_D": per_metre(medium["beta_D"], scale),
+                                     "beta_B": per_metre(medium["beta_B"], scale), "B_inf": medium["B_inf"],
                                      "units": "1/m (B_inf: linear intensity)"}
     model["water_coefficients"] = water_coefficients(medium, scale)
     train = _read_json(layout.train_result) or {}

@@ -1,5 +1,5 @@
 """Render a trained job again (``dualphys render``): its own cameras, a chosen few, or novel cameras on a smooth
-path through them. The rendering itself is :func:`pipeline.train.model.export_views` (the export stage's)."""
+path through them. The rendering itself is :func:`pipeline.export.views.export_views` (the export stage's)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 
 from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
 from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
-from pipeline.scene.types import View
+from pipeline.scene.types import View, scaled_view
 
 log = logging.getLogger(__name__)
 
@@ -25,8 +25,7 @@ def training_views(job: Path, state: dict) -> list[View]:
     from pipeline.scene.loader import load_scene
 
     down = int(state["config"].get("downscale", 1))
-    return [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
-            for v in load_scene(JobLayout(job).scene).views]
+    return [scaled_view(v, down) for v in load_scene(JobLayout(job).scene).views]
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:

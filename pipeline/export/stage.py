@@ -15,9 +15,8 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     import time
 
     t0 = time.perf_counter()
+    from pipeline.evaluate.rerender import training_views
     from pipeline.export.views import export_views
-    from pipeline.scene.loader import load_scene
-    from pipeline.scene.types import View
     from pipeline.splat.ply import export_ply
     from pipeline.train.checkpoint import load_checkpoint
 
@@ -26,10 +25,7 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     out = layout.output
     out.mkdir(parents=True, exist_ok=True)
     data = export_ply(state["gaussians"], layout.ply)
-    down = int(state["config"].get("downscale", 1))
-    views = [View(v.name, v.camera.scaled(1.0 / down), v.R, v.t, v.image_path)
-             for v in load_scene(layout.scene).views]
-    counts = export_views(state, views, out)
+    counts = export_views(state, training_views(job, state), out)
     from pipeline.evaluate.report import write_report
 
     reports = write_report(job, out, export_s=time.perf_counter() - t0)

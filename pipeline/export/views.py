@@ -26,7 +26,8 @@ log = logging.getLogger(__name__)
 def export_views(state: dict[str, Any], views: Sequence[View], out: str | Path, backend: str = "auto",
                  what: Sequence[str] | None = None) -> dict:
     """Write the restored outputs of every view from a training checkpoint ``state``; returns counts.
-    ``what`` limits the folders written (default: all that the model has; see :data:`EXPORT_FOLDERS`)."""
+    ``what`` limits the folders written (default: all that the model has; see
+    :data:`~pipeline.job.layout.EXPORT_FOLDERS`)."""
     out = Path(out)
     model = model_from_state(state)
     medium = model.medium

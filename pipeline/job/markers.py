@@ -58,11 +58,6 @@ def read_marker(job_dir: str | Path, stage: str) -> dict | None:
         return None
 
 
-def is_done(job_dir: str | Path, stage: str, chash: str) -> bool:
-    m = read_marker(job_dir, stage)
-    return m is not None and m.get("config_hash") == chash
-
-
 def clear_marker(job_dir: str | Path, stage: str) -> None:
     marker_path(job_dir, stage).unlink(missing_ok=True)
 

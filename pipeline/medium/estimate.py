@@ -8,7 +8,7 @@ grey-world prior, which makes a sandy seabed grey). The same idea underlies Sea-
 estimates (Akkaynak & Treibitz 2019); here the multi-view tracks of the sparse model replace its depth map.
 
 The medium starts training at these coefficients, and ``L_attenuation`` keeps the effective global β_D near
-them (``pipeline.medium.losses.attenuation_anchor``): the medium networks still learn the spatial modulation of
+them (``pipeline.medium.losses.log_anchor``): the medium networks still learn the spatial modulation of
 eqs. 5 and 8 around them. Ranges are distances along the ray in scene units, so the coefficients are in
 1/scene-unit, like the medium's.
 
@@ -77,7 +77,8 @@ def gather_observations(points: np.ndarray, views: Sequence[View], images: Seque
     model's tracks: matched features, so visibility is known), those are used; otherwise the points are
     projected and kept where they are the nearest of their grid cell (the module docstring). The colour is the
     single pixel under the point: averaging a patch mixes in a neighbourhood whose size on the surface changes
-    with range, and biased β_D by 20-50 % on SfM keypoints of a generated scene (a pixel: within 3 %).
+    with range, and biased β_D on SfM keypoints of a generated scene (docs/DECISIONS.md, "Numbers behind code
+    comments").
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     idx_all, rng_all, col_all = [], [], []

@@ -43,11 +43,13 @@ def dualphys_formation(J: Tensor, A: Tensor, B: Tensor) -> Tensor:
 
 
 def composite_over_water(J: Tensor, A: Tensor, B: Tensor, alpha: Tensor, B_inf: Tensor) -> Tensor:
-    """Eq. 4 for a splatted pixel that is only partly covered (alpha < 1).
+    """Eq. 4 (:func:`dualphys_formation`) for a splatted pixel that is only partly covered (alpha < 1): what
+    :class:`~pipeline.medium.model.Medium` renders.
 
     J is the alpha-premultiplied rendered radiance and A, B are evaluated at the alpha-normalised depth; the
-    uncovered fraction (1 − alpha) looks through water to infinity and sees the veiling light B∞:
+    covered fraction alpha sees eq. 4 with its backscatter alpha·B, the uncovered fraction (1 − alpha) looks
+    through water to infinity and sees the veiling light B∞:
         I = J·A + alpha·B + (1 − alpha)·B∞.
     With alpha = 1 this is exactly eq. 4. Shapes: J, A, B [N,3,H,W]; alpha [N,1,H,W]; B_inf [3].
     """
-    return J * A + alpha * B + (1.0 - alpha) * B_inf.reshape(1, -1, 1, 1)
+    return dualphys_formation(J, A, alpha * B) + (1.0 - alpha) * B_inf.reshape(1, -1, 1, 1)

@@ -14,9 +14,8 @@ Where we differ from the paper and its authors' code, and why:
   Σ_c (log β̄_c − log β̂_c)² with β̄ the view's mean effective β_D (eq. 5's modulation included) and β̂ the
   measurement. Where the points cannot measure the water (too few seen twice), it falls back to a
   colour-constancy (grey-world) prior on the restored J in log-chromaticity: Σ_c (log mean J_c − mean_c log
-  mean J_c)². We measured grey-world first: it makes a sandy seabed grey (restored-J means .37/.39/.38 against
-  the truth .48/.45/.36 on the generated medium scene, 19.6 dB restored PSNR against 24.5 for 3DGS on the
-  clean images); with the measurement, see docs/DECISIONS.md.
+  mean J_c)². We measured grey-world first: it makes a sandy seabed grey, and the measurement restores better
+  (docs/DECISIONS.md, "Losses" and "Numbers behind code comments").
 - L_scattering (in eq. 10): the veil bound. Backscatter can never exceed the light observed at a pixel
   (I = J·A + B with J·A ≥ 0), so mean relu(α·B − I) costs any veil brighter than the photo. With a
   measurement, plus Σ_c (log B̄_c − log B̂_c)²: the view's mean backscatter against the measured backscatter
@@ -44,19 +43,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from pipeline.train.image_losses import ssim
+from pipeline.train.image_losses import photometric_losses
 
 EPS = 1e-6
 
 
-def _nhwc(x: Tensor) -> Tensor:
-    return x.permute(0, 2, 3, 1)
-
-
 def basic_loss(render: Tensor, target: Tensor, ssim_weight: float = 0.2) -> Tensor:
-    """L_basic = (1 − w)·L1 + w·(1 − SSIM), w = 0.2 (3DGS). [N,3,H,W] x2 → []"""
-    return (1 - ssim_weight) * (render - target).abs().mean() + ssim_weight * (
-        1 - ssim(_nhwc(render), _nhwc(target)))
+    """L_basic = (1 − w)·L1 + w·(1 − SSIM), w = 0.2 (3DGS): the trainer's photometric loss, summed. [N,3,H,W] x2 → []"""
+    terms = photometric_losses(render, target, ssim_weight, channels_first=True)
+    return terms["l1"] + terms["dssim"]
 
 
 def consistency_loss(A: Tensor, B_frac: Tensor, D: Tensor, depth_scale: float, mu: float = 0.1) -> Tensor:
@@ -81,12 +76,6 @@ def log_anchor(value: Tensor, reference: Tensor) -> Tensor:
     for the view's mean effective β_D, in L_scattering for the view's mean backscatter against the measured
     backscatter curve at the same ranges. [3] x2 → []"""
     return ((value.clamp(min=1e-6).log() - reference.clamp(min=1e-6).log()) ** 2).sum()
-
-
-def dark_channel(J: Tensor, patch: int = 7) -> Tensor:
-    """min over channels and a patch×patch window. [N,3,H,W] → [N,1,H,W]"""
-    m = J.amin(dim=1, keepdim=True)
-    return -F.max_pool2d(-m, patch, stride=1, padding=patch // 2)[..., : J.shape[2], : J.shape[3]]
 
 
 def scattering_prior(B: Tensor, observed: Tensor, alpha: Tensor) -> Tensor:
@@ -166,11 +155,12 @@ def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, band: float = D
     the image. D, alpha [N,1,H,W], range_map [N,1,h,w] (:func:`pipeline.medium.term.point_range_map`) → []
 
     Not in the paper. ``point_depth_loss`` holds the surface at the sparse points' own pixels; where SfM found
-    few points (bright, low-texture sand) Gaussians were still drawn far behind the seabed (real RUIE frames:
-    ~150 scene units against ~10), where they show only the veil, and the restored view was black there. A
-    surface is continuous with its neighbourhood, so no covered pixel may lie more than ``band`` times beyond
-    the range its nearest points predict; nearer costs nothing here (floaters are the floater term's). α is
-    detached: the way out must not be to uncover the pixel, which is the shortcut this term closes."""
+    few points (bright, low-texture sand) Gaussians were still drawn far behind the seabed (real RUIE frames;
+    docs/DECISIONS.md, "The water must not eat the scene"), where they show only the veil, and the restored
+    view was black there. A surface is continuous with its neighbourhood, so no covered pixel may lie more than
+    ``band`` times beyond the range its nearest points predict; nearer costs nothing here (floaters are the
+    floater term's). α is detached: the way out must not be to uncover the pixel, which is the shortcut this
+    term closes."""
     if range_map.numel() == 0:
         return D.new_zeros(())
     ref = F.interpolate(range_map.log(), size=D.shape[-2:], mode="bilinear", align_corners=False)
@@ -214,8 +204,8 @@ class LossWeights:
     w_depth_band: float = 0.05  # not in the paper: and no covered pixel far behind its points (depth_band_loss)
     w_cover: float = 0.05  # not in the paper: and the surface their planes predict in sight covered (cover_loss)
     mu: float = 0.1  # complementarity weight inside L_ab
-    anchor: float = 4.0  # weight of the measured-water anchors inside L_attenuation and L_scattering (1 → 4:
-    #                      restored J 20.4 → 21.2 dB on the SfM demo scene, β_D within 1–12 % of the truth)
+    anchor: float = 4.0  # weight of the measured-water anchors inside L_attenuation and L_scattering (4 restored
+    #                      better than 1: docs/DECISIONS.md, "Losses" and "Numbers behind code comments")
     gamma_wat: float = 1.0  # γ inside L_wat
     lam_edge: float = 0.5
     lam_ms: float = 1.0

@@ -1,6 +1,6 @@
 """The medium as a module: the water between the camera and the splatted scene.
 
-Modes (``MediumConfig.mode``):
+Modes (``TrainConfig.mode``; ``MediumConfig`` holds the medium's settings):
 - ``3dgs``: no medium, I = J (composited over the background colour by the rasterizer).
 - ``homogeneous``: one global per-channel β_D, β_B, B∞ (eq. 3), the medium of SeaThru-style methods.
 - ``dualphys``: eq. 5 attenuation and eq. 8 backscatter, each module switchable for the ablation table.
@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from pipeline.config import MediumConfig
 from pipeline.medium.attenuation import EdgePerception, rgb_guided_attenuation
 from pipeline.medium.formation import composite_over_water, homogeneous_backscatter, transmission
 from pipeline.medium.scattering import MultiScaleFeatures, depth_confidence, depth_edge_factor, multiscale_backscatter
@@ -79,6 +81,13 @@ class Medium(nn.Module):
         self.edge = EdgePerception() if self.rgb_attenuation else None
         self.multiscale = MultiScaleFeatures() if self.multiscale_scattering else None
 
+    @classmethod
+    def from_config(cls, mode: str, cfg: MediumConfig, depth_scale: float, **init: Any) -> Medium:
+        """The medium ``cfg`` describes (modules, modulation strengths) for a scene with this depth normaliser;
+        ``init``: the starting coefficients (``init_beta``, ``init_binf``, ``init_beta_b``), else the defaults."""
+        return cls(mode, rgb_attenuation=cfg.rgb_attenuation, multiscale_scattering=cfg.multiscale_scattering,
+                   gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=depth_scale, **init)
+
     @property
     def beta_D(self) -> Tensor:  # [3] 1/scene-unit
         return F.softplus(self.beta_d_raw)
@@ -109,7 +118,10 @@ class Medium(nn.Module):
                                       self.lam, self.delta)
 
     def forward(self, J: Tensor, D: Tensor, alpha: Tensor | None = None) -> MediumOutput:
-        """J [N,3,H,W] rendered (premultiplied) radiance; D [N,1,H,W] distance along the ray; alpha [N,1,H,W]."""
+        """J [N,3,H,W] rendered (premultiplied) radiance; D [N,1,H,W] distance along the ray; alpha [N,1,H,W].
+
+        I is eq. 4 over the water (:func:`~pipeline.medium.formation.composite_over_water`): J·A + alpha·B where
+        the Gaussians cover the pixel, the veiling light B∞ where they do not (no alpha: fully covered)."""
         if J.ndim != 4 or J.shape[1] != 3 or D.shape != (J.shape[0], 1, *J.shape[2:]):
             raise ValueError(f"expected J [N,3,H,W] and D [N,1,H,W], got {tuple(J.shape)} and {tuple(D.shape)}")
         A, beta_eff = self.attenuation(J, D)

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from pipeline.config import MediumConfig
 from pipeline.medium.estimate import measure_water
-from pipeline.medium.losses import LossWeights, basic_loss, loss_terms
+from pipeline.medium.losses import LossWeights, loss_terms
 from pipeline.medium.model import Medium, MediumOutput
 from pipeline.scene.types import Scene, View, ray_length_factor, view_ranges
 from pipeline.train.quality import view_point_ranges
@@ -174,10 +174,7 @@ class MediumTerm:
             if est is not None:
                 self.estimate = est.to_dict()
                 init = {"init_beta": est.beta_D, "init_beta_b": est.beta_B, "init_binf": est.B_inf}
-        self.medium = Medium(
-            mode, rgb_attenuation=cfg.rgb_attenuation, multiscale_scattering=cfg.multiscale_scattering,
-            gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=self.depth_scale, **init,  # type: ignore[arg-type]
-        ).to(device)
+        self.medium = Medium.from_config(mode, cfg, self.depth_scale, **init).to(device)
         self.medium.water_factor.fill_(cfg.water_factor)
         self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
                     for v in views]  # per view [1, 1, H, W]
@@ -247,11 +244,6 @@ class MediumTerm:
             b_ref = (ap * t("B_inf") * (1 - torch.exp(-t("beta_B") * Dp))).mean(dims)
         return {"attenuation": (out.beta_eff, t("beta_D").flatten()),
                 "backscatter": ((alpha * out.B).mean(dims), b_ref)}
-
-    @staticmethod
-    def warmup_loss(image: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
-        """Before the medium switches on, J alone is fitted to the photo (paper §5: medium on at 10k of 30k)."""
-        return basic_loss(_nchw(image), _nchw(target), ssim_weight)
 
     def step(self) -> None:
         self.optimizer.step()

@@ -15,8 +15,13 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-# Names that list_images picks up (lower-case suffixes; matching is case-insensitive).
-IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".exr"})
+# Image file names by lower-case suffix (matching is case-insensitive). The one place these lists are spelled.
+JPEG_EXTENSIONS = frozenset({".jpg", ".jpeg"})
+# What list_images picks up (SfM's and the loaders' input; ingest writes every photo as .jpg or .png).
+IMAGE_EXTENSIONS = JPEG_EXTENSIONS | {".png", ".tif", ".tiff", ".bmp", ".webp", ".exr"}
+# What counts as a photo in a survey folder: those and the further formats OpenImageIO decodes, which ingest
+# converts to PNG.
+DECODABLE_EXTENSIONS = IMAGE_EXTENSIONS | {".jp2", ".jxl", ".dpx", ".tga", ".ppm", ".pgm", ".hdr"}
 
 _FLOAT_FORMATS = {".exr", ".tif", ".tiff"}  # may hold float32 pixels
 _16BIT_FORMATS = {".png", ".tif", ".tiff"}  # may hold uint16 pixels
@@ -143,7 +148,7 @@ def write_image(
     h, w, c = data.shape
     spec = oiio.ImageSpec(w, h, c, fmt)
     spec.attribute("oiio:UnassociatedAlpha", 1)  # our colour is not premultiplied: store it unchanged
-    if ext in (".jpg", ".jpeg"):
+    if ext in JPEG_EXTENSIONS:
         if c == 4:
             raise ValueError(f"write_image: JPEG has no alpha channel ({path})")
         spec.attribute("Compression", f"jpeg:{int(quality)}")
@@ -188,7 +193,7 @@ def resize_area(img: np.ndarray, factor: float) -> np.ndarray:
     """Downscale by ``factor`` in (0, 1] with area averaging (antialiased).  # [H, W, C] -> [h, w, C]
 
     The output size is ``max(1, round(H * factor)) x max(1, round(W * factor))``, the same rounding as
-    :meth:`Camera.scaled`, so a scaled camera and a resized image always agree.
+    :meth:`~pipeline.scene.types.Camera.scaled`, so a scaled camera and a resized image always agree.
     """
     if not 0.0 < factor <= 1.0:
         raise ValueError(f"resize_area: factor must be in (0, 1], got {factor}")
@@ -262,7 +267,9 @@ def _first_line(msg: str | None) -> str:
 
 
 __all__ = [
+    "DECODABLE_EXTENSIONS",
     "IMAGE_EXTENSIONS",
+    "JPEG_EXTENSIONS",
     "ImageReadError",
     "image_orientation",
     "list_images",

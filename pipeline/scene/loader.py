@@ -14,8 +14,9 @@ SeaThru-NeRF sets, SIMPLE_RADIAL from a plain COLMAP run, ...) is undistorted to
 files are unchanged (size and mtime fingerprint).
 
 Resolution: ``downscale`` is a divisor (2 = half width and height, like 3DGS's ``-r 2``). It scales the
-cameras with :meth:`Camera.scaled`; the view's camera is then the single source of truth for the image
-size, and :func:`load_view_image` / :func:`load_images` read each file and area-average it down to that size.
+cameras with :meth:`~pipeline.scene.types.Camera.scaled` (:func:`~pipeline.scene.types.scaled_view`); the view's
+camera is then the single source of truth for the image size, and :func:`load_view_image` / :func:`load_images`
+read each file and area-average it down to that size.
 """
 
 from __future__ import annotations
@@ -25,14 +26,13 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.scene.colmap import UnsupportedCameraError, has_model, quiet_pycolmap, read_colmap
 from pipeline.scene.images import read_image, resize_area_to
-from pipeline.scene.types import Scene, View
+from pipeline.scene.types import Scene, View, scaled_view
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +104,7 @@ def load_scene(
             f"{images_dir} (e.g. {', '.join(missing[:3])})"
         )
     if downscale != 1.0:
-        scene.views = [replace(v, camera=v.camera.scaled(1.0 / downscale)) for v in scene.views]
+        scene.views = [scaled_view(v, downscale) for v in scene.views]
     scene.root = root
     log.info(
         "loaded %d views, %d points from %s (images %s)",

@@ -11,7 +11,7 @@ Conventions (fixed for the whole project):
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +68,12 @@ class View:
         m[:3, :3] = self.R
         m[:3, 3] = self.t
         return m
+
+
+def scaled_view(view: View, downscale: float) -> View:
+    """``view`` with its camera for the image shrunk ``downscale`` times (``Camera.scaled(1 / downscale)``): the
+    resolution a job trained at. ``view`` itself when ``downscale`` is 1."""
+    return view if downscale == 1 else replace(view, camera=view.camera.scaled(1.0 / downscale))
 
 
 @dataclass(frozen=True)

@@ -15,9 +15,8 @@ process for ALIKED / LightGlue (no ONNX), so the extractor type is never configu
 
 Reproducibility: seeded, and image ids follow the sorted names, so features and matches are identical run to
 run. With ``num_threads=1`` (the default) the whole output is bit-identical; with 2 threads the model
-moved run to run (RUIE A188: 1.110 / 1.115 / 1.121 px, same 19 images; the mapper alone on one thread was
-not enough), and training on two such models gave a far-drawn share of 18 % against 1.4 %. One thread costs
-about a quarter more SfM time (A188: 8.7-9.2 s against 7.1-7.4 s; docs/DECISIONS.md).
+moved run to run (the mapper alone on one thread was not enough), and training amplified the difference. One
+thread costs about a quarter more SfM time (the measurements: docs/DECISIONS.md, "SfM").
 """
 
 from __future__ import annotations
@@ -32,10 +31,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 from pipeline.config import SfmConfig
-from pipeline.scene.align import align_to_reference
 from pipeline.scene.colmap import quiet_pycolmap
 from pipeline.scene.images import (
     IMAGE_EXTENSIONS,
+    JPEG_EXTENSIONS,
     ImageReadError,
     image_orientation,
     list_images,
@@ -45,7 +44,7 @@ from pipeline.scene.images import (
 
 log = logging.getLogger(__name__)
 
-MIN_IMAGES = 3  # pycolmap never built a model from 2 views in our measurements (shared/notes)
+MIN_IMAGES = 3  # pycolmap never built a model from 2 views (docs/DECISIONS.md, "Numbers behind code comments")
 # Camera models SfM may refine before undistortion (all undistortable to PINHOLE by COLMAP).
 CAMERA_MODELS = (
     "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
@@ -293,7 +292,7 @@ def _stage_oriented(
     for p in good:
         if p in rotated:
             write_image(
-                stage / p.name, read_image(p), bits=8 if p.suffix.lower() in (".jpg", ".jpeg") else None
+                stage / p.name, read_image(p), bits=8 if p.suffix.lower() in JPEG_EXTENSIONS else None
             )
         else:
             os.symlink(p.resolve(), stage / p.name)
@@ -328,7 +327,7 @@ class _Attempt:
         names = list(self.names)
         # Register the images first, one thread, in name order: image ids then follow the names. Letting the
         # multi-threaded extractor create them numbers them in completion order, which changes match and
-        # mapping order and makes runs differ (measured on RUIE, same config: 1.103 vs 1.148 px).
+        # mapping order and makes runs differ (docs/DECISIONS.md, "Numbers behind code comments").
         pycolmap.Database.open(str(db_path)).close()  # import_images needs an existing database
         pycolmap.import_images(db_path, feature_dir, camera_mode=self.camera_mode, image_names=names,
                                options=self.reader)
@@ -470,7 +469,6 @@ __all__ = [
     "SfmSummary",
     "TooFewImagesError",
     "TooFewRegisteredError",
-    "align_to_reference",
     "choose_matcher",
     "is_numbered_sequence",
     "run_sfm",

@@ -14,5 +14,6 @@ T_MIN = 1e-4
 # The projected footprint is cut where alpha < ALPHA_MIN, but never beyond this many standard deviations
 # (gsplat's constant; equal to sqrt(2 ln 255), i.e. the opacity-1 cut).
 MAX_EXTENT_SIGMAS = 3.33
-# Tile edge of the cpu backend, in pixels (8x8 measured 15-25% faster than 16x16 on our CPUs).
+# Tile edge of the cpu backend, in pixels (8x8 measured faster than 16x16; docs/DECISIONS.md, "Numbers behind code
+# comments").
 CPU_TILE = 8

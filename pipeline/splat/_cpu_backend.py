@@ -31,7 +31,7 @@ logger = logging.getLogger(__name__)
 TILE_SIZE = CPU_TILE
 _TILE_CHUNK = 4  # tiles per dynamically scheduled work item of the compositing kernels
 BWD_SLICES = 4  # the backward's accumulator slices (_cpu_raster_kernels, step 3): fixed, not the thread count,
-#                 so a run repeats bit for bit whatever the schedule (4: +3-8 % fwd+bwd against one per thread)
+#                 so a run repeats bit for bit whatever the schedule (its cost: docs/DECISIONS.md, "Rendering engine")
 
 
 _announced = False

@@ -48,7 +48,7 @@ def argsort_stable(keys):
     """Stable argsort of float64 keys (LSD radix sort, 11-bit digits, constant digits skipped): [M] -> [M] int64.
 
     Same order as a stable comparison sort (ties keep index order), so the reference's torch.sort(stable=True)
-    and this agree exactly; 5x faster than numba's mergesort at 50k keys.
+    and this agree exactly; faster than numba's mergesort (docs/DECISIONS.md, "Numbers behind code comments").
     """
     n = keys.shape[0]
     bits = keys.view(np.uint64)
@@ -92,10 +92,11 @@ def _row_tiles(mx, my, b, ok, det, inv_a, k, v_lim, vs, ty, tx0, tx1, width, hei
     """Tiles [lo, hi] of tile row ty that the ellipse sigma <= thr reaches (empty: hi < lo), within [tx0, tx1].
 
     Exact x-extent of the ellipse over the row's pixel-centre y-span, with a small margin, so only tiles the
-    ellipse provably misses are dropped (the pixel box alone keeps ~25% more pairs). With u = x - mx,
-    v = y - my and det = ac - b^2: u ranges over (-b v +- sqrt(2 a thr - det v^2)) / a; the upper bound is
-    concave in v with its maximum sqrt(2 thr c / det) at v* = -b sqrt(2 thr / (det c)), the lower bound is its
-    mirror image, so over a v-interval each bound is at v* (if inside) or at the nearer end.
+    ellipse provably misses are dropped (the pixel box alone keeps more pairs; docs/DECISIONS.md, "Numbers behind
+    code comments"). With u = x - mx, v = y - my and det = ac - b^2: u ranges over
+    (-b v +- sqrt(2 a thr - det v^2)) / a; the upper bound is concave in v with its maximum sqrt(2 thr c / det)
+    at v* = -b sqrt(2 thr / (det c)), the lower bound is its mirror image, so over a v-interval each bound is at
+    v* (if inside) or at the nearer end.
     """
     if not ok:
         return tx0, tx1  # degenerate: keep the whole box row
@@ -299,7 +300,8 @@ def raster_fwd(rows, tile_offsets, width, height, backgrounds, out, out_t, masks
             op, thr = rows[j, 5], rows[j, 6]
             f0, f1, f2, f3 = rows[j, ROW], rows[j, ROW + 1], rows[j, ROW + 2], rows[j, ROW + 3]
             # lanes lo..hi-1: the tile rows inside the Gaussian's pixel box (outside it sigma > thr). Unsigned, so
-            # numba adds no negative-index wraparound and the loops stay SIMD (signed: 8x slower, measured).
+            # numba adds no negative-index wraparound and the loops stay SIMD (signed: much slower; docs/DECISIONS.md,
+            # "Numbers behind code comments").
             lo = np.uint64(max(int(rows[j, 7]) - y0, 0) * TILE)
             hi = np.uint64((min(int(rows[j, 8]) - y0, TILE - 1) + 1) * TILE)
             hit = 0

@@ -1,9 +1,9 @@
 """Scalar helpers for the numba kernels: a vectorisable float32 exp and an exact fused multiply-add.
 
-Why: PyPI's llvmlite has no SVML, so ``math.exp`` stays a scalar libm call and blocks SIMD in the pixel loops
-(measured 3.3 ns vs 0.7 ns per element). ``fexp`` is the Cephes single-precision scheme (Cody-Waite range
-reduction, degree-6 polynomial, exponent bits built with an integer bitcast); measured max relative error 6e-8 on
-[-20, 0], the same as libm's ``expf``. It is exact-rounding-insensitive where it matters: the kernels take their
+Why: PyPI's llvmlite has no SVML, so ``math.exp`` stays a scalar libm call and blocks SIMD in the pixel loops.
+``fexp`` is the Cephes single-precision scheme (Cody-Waite range reduction, degree-6 polynomial, exponent bits
+built with an integer bitcast), as accurate as libm's ``expf`` (both measurements: docs/DECISIONS.md, "Numbers
+behind code comments"). It is exact-rounding-insensitive where it matters: the kernels take their
 alpha >= 1/255 decisions on sigma, never on the exp.
 
 Importing this module imports numba (it is only imported by the cpu backend's kernels).

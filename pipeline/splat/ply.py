@@ -7,9 +7,9 @@ One ``vertex`` element, binary little-endian float32, properties in this order:
 - normals are written as zeros (graphdeco does the same).
 
 Both directions avoid per-vertex Python loops: export views one [N, 62] float32 block as the record
-dtype; import parses the ASCII header and ``np.frombuffer``s the payload (``plyfile`` falls back to a
-per-element loop for non-mmappable streams such as uploads: 26 s for 100k vertices, see
-shared/notes/dependency-facts.md). Non-finite rows are counted and logged, never dropped.
+dtype; import parses the ASCII header and ``np.frombuffer``s the payload (``plyfile`` falls back to a slow
+per-element loop for non-mmappable streams such as uploads; docs/DECISIONS.md, "Numbers behind code comments").
+Non-finite rows are counted and logged, never dropped.
 """
 
 from __future__ import annotations

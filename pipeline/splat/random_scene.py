@@ -1,9 +1,9 @@
 """Random Gaussian clouds in front of a pinhole camera: the rasterizer's test and benchmark scene.
 
-The scene of shared/notes/cpu-backend-measurements.md: N Gaussians in a 3.2 x 2.4 x 2 volume 3 to 5 units in
-front of a camera with a 53 degree horizontal field of view; log-normal scales shrinking as N^(-1/3), the way
-densification makes Gaussians smaller. The base scale 0.022 * (50k / N)^(1/3) reproduces the notes' load: ~43
-Gaussians with alpha >= 1/255 per pixel at 5k / 160x120, ~96 at 50k / 320x240.
+The scene the cpu backend was chosen on: N Gaussians in a 3.2 x 2.4 x 2 volume 3 to 5 units in front of a camera
+with a 53 degree horizontal field of view; log-normal scales shrinking as N^(-1/3), the way densification makes
+Gaussians smaller. The base scale 0.022 * (50k / N)^(1/3) reproduces that measurement's load of Gaussians per
+pixel (docs/DECISIONS.md, "Numbers behind code comments").
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The one entry point of the rendering engine: ``rasterize`` (paper eqs. 1-2), with selectable backends.
 
-Backends (DESIGN.md, "Rendering engine"):
+Backends (docs/DECISIONS.md, "Rendering engine"):
 - ``torch``: the reference (``_torch_ref``), slow and obvious, autograd-differentiable, any device.
 - ``cpu``: the fast one (``_cpu_backend``): numba kernels with a hand-written backward, CPU tensors only.
   numba is imported and its kernels are compiled (or loaded from the on-disk cache) on first use.

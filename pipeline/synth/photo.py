@@ -1,11 +1,11 @@
 """The "photo" family of generated underwater scenes (CLI: ``dualphys synth --family photo``).
 
-A second generator, independent of :mod:`.synth` on purpose: that family's bright procedural seabeds with the
+A second generator, independent of :mod:`.procedural` on purpose: that family's bright procedural seabeds with the
 water applied per pixel exactly as our medium model assumes could never show where the model fails. Here:
 
-- albedo is cut from real colour photographs (:mod:`.synth_photo_texture`), darkened and lower in contrast;
-- geometry is a filtered-noise heightfield grid with boulders, ray marched (:mod:`.synth_photo_world`);
-- the camera flies lawnmower lines at varying altitude plus an oblique pass (:mod:`.synth_photo_path`);
+- albedo is cut from real colour photographs (:mod:`.photo_texture`), darkened and lower in contrast;
+- geometry is a filtered-noise heightfield grid with boulders, ray marched (:mod:`.photo_world`);
+- the camera flies lawnmower lines at varying altitude plus an oblique pass (:mod:`.photo_path`);
 - water is applied per supersample, *before* box filtering, as in a real camera: a written pixel is the mean
   of ``J_s·exp(−β_D r_s) + B∞(1 − exp(−β_B r_s))`` over its supersamples, which differs from the closed form
   applied to the pixel's mean J and mean depth wherever depth or colour varies inside the pixel;
@@ -20,7 +20,7 @@ Output folder (the layout of :mod:`pipeline.synth.procedural`, so ground truth a
     water.json   preset, beta_D, beta_B, B_inf, units, model, generator config, "family": "photo"
 
 Water presets (R, G, B camera bands, 1/m; B∞ linear [0, 1]). Chosen inside published ranges, not measured at a
-site, and deliberately different from ``water_model.WATER_PRESETS``. Sources: Jerlov (1976, *Marine Optics*)
+site, and deliberately different from ``pipeline.synth.water.WATER_PRESETS``. Sources: Jerlov (1976, *Marine Optics*)
 diffuse attenuation K_d by water type; Solonenko & Mobley (Appl. Opt. 54(17), 2015) IOPs of the Jerlov types;
 Akkaynak et al. (CVPR 2017) effective wideband β_D for cameras (a camera's red band sits where pure-water
 absorption climbs steeply, so its β_D exceeds K_d(600 nm)); Akkaynak & Treibitz (CVPR 2018/2019) β_B ≠ β_D.
@@ -78,7 +78,7 @@ DEFAULT_PHOTOS: tuple[PhotoBox, ...] = (
     ("10", 0.45, 1.0, 0.0, 1.0), ("11", 0.45, 0.95, 0.3, 1.0), ("15", 0.0, 1.0, 0.0, 1.0),
     ("21", 0.0, 1.0, 0.0, 1.0), ("22", 0.0, 1.0, 0.0, 1.0), ("23", 0.5, 1.0, 0.0, 0.84),
 )
-LIGHT_DIR = (-0.30, 0.45, 1.0)  # towards the light; not synth_world's (0.35, 0.25, 1.0)
+LIGHT_DIR = (-0.30, 0.45, 1.0)  # towards the light; not world.py's (0.35, 0.25, 1.0)
 
 
 def default_textures_dir() -> Path:

@@ -1,6 +1,6 @@
 """Survey camera path of the "photo" scene family: lawnmower lines at varying altitude plus an oblique pass.
 
-Unlike :mod:`.synth_path` (fixed 2 m altitude, two rows, one 40° forward pass crabbing sideways), this is
+Unlike :mod:`.path` (fixed 2 m altitude, two rows, one 40° forward pass crabbing sideways), this is
 shaped like a real ROV photogrammetry survey:
 
 - Downward-looking lawnmower lines (boustrophedon along ±x, 1–3 lines depending on the view count). Each line

@@ -1,6 +1,6 @@
 """Seabed albedo cut from real colour photographs, laid out as a randomised mosaic in world coordinates.
 
-Used by the "photo" scene family (:mod:`.synth_photo`). Why photographs: the procedural family's bright,
+Used by the "photo" scene family (:mod:`.photo`). Why photographs: the procedural family's bright,
 high-contrast textures share our own assumptions; real seabeds are darker, lower in contrast and have the
 colour statistics of real coral, rubble and sand.
 

@@ -1,6 +1,6 @@
 """Seabed geometry of the "photo" scene family: a periodic heightfield grid and a ray marcher for it.
 
-Deliberately unlike :mod:`.synth_world` (analytic sum of sinusoids, sphere tracing, closed-form rocks):
+Deliberately unlike :mod:`.world` (analytic sum of sinusoids, sphere tracing, closed-form rocks):
 
 - Relief is filtered noise on a grid: white noise shaped in the Fourier domain to a power-law spectrum
   ``P(f) ∝ (f² + f0²)^(-β/2) · exp(-(f/f_max)²)`` (β = 3: a fractal, rubble-like surface), normalised to a given

@@ -1,7 +1,7 @@
 """Synthetic underwater scenes with ground truth (CLI: ``dualphys synth``).
 
-A seabed (heightfield, rocks, corals; :mod:`.synth_world`) is ray cast analytically from an ROV-like camera
-path (:mod:`.synth_path`), then the revised underwater image-formation model (:mod:`.water_model`) is applied
+A seabed (heightfield, rocks, corals; :mod:`.world`) is ray cast analytically from an ROV-like camera
+path (:mod:`.path`), then the revised underwater image-formation model (:mod:`.water`) is applied
 with the preset's known coefficients. Output folder::
 
     images/      underwater images, 8-bit PNG        (what a survey camera would record)

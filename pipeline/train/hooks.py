@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING
 
 from torch import Tensor
 
+from pipeline.evaluate.metrics import pooled_psnr
 from pipeline.scene.types import View
-from pipeline.train.image_losses import pooled_psnr
 
 if TYPE_CHECKING:
     from pipeline.train.trainer import Trainer

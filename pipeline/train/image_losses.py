@@ -1,11 +1,10 @@
-"""Image comparison primitives: L1, SSIM, PSNR. Pure tensor functions, channel-last images.
+"""Image comparison primitives: L1, SSIM and the 3DGS loss made of them. Pure tensor functions, channel-last
+images (PSNR is an evaluation metric: ``pipeline.evaluate.metrics``).
 
 Images are ``[..., H, W, C]`` floats in [0, 1] (what the rasterizer returns), any leading batch shape.
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 import torch.nn.functional as F
@@ -66,19 +65,13 @@ def ssim(a: Tensor, b: Tensor) -> Tensor:
     return ssim_map(a, b).mean()
 
 
-def psnr_from_mse(mse: float) -> float:
-    """PSNR in dB for signals in [0, 1]; +inf for a perfect match."""
-    return math.inf if mse <= 0 else -10.0 * math.log10(mse)
-
-
-def pooled_psnr(pairs: list[tuple[Tensor, Tensor]]) -> float:
-    """PSNR of the MSE pooled over every pixel of every (render, target) pair (not a mean of per-view PSNRs).
-    Inputs are clamped by the caller if needed."""
-    if not pairs:
-        raise ValueError("pooled_psnr needs at least one image pair")
-    sq, count = 0.0, 0
-    for a, b in pairs:
-        _check_pair(a, b)
-        sq += float((a.detach().double() - b.detach().double()).square().sum())
-        count += a.numel()
-    return psnr_from_mse(sq / count)
+def photometric_losses(render: Tensor, target: Tensor, ssim_weight: float, *,
+                       channels_first: bool = False) -> dict[str, Tensor]:
+    """The 3DGS photometric loss as named, already-weighted terms (sum them once): (1 − w)·L1 and w·(1 − SSIM).
+    Each caller keeps its own w (``TrainConfig.ssim_weight`` before the medium starts, ``LossWeights.ssim_weight``
+    in eq. 13's L_basic). [..., H, W, C] x2, or [N, C, H, W] x2 with ``channels_first`` -> {"l1": [], "dssim": []}"""
+    hwc = (lambda x: x.permute(0, 2, 3, 1)) if channels_first else (lambda x: x)
+    return {
+        "l1": (1.0 - ssim_weight) * l1(render, target),
+        "dssim": ssim_weight * (1.0 - ssim(hwc(render), hwc(target))),
+    }

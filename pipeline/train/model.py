@@ -15,8 +15,7 @@ from pipeline.medium.model import Medium
 def medium_from_state(mode: str, sd: dict[str, Any]) -> Medium:
     """Rebuild the trained medium module from a checkpoint's ``"medium"`` entry."""
     cfg = from_dict(MediumConfig, sd["config"])
-    m = Medium(mode, rgb_attenuation=cfg.rgb_attenuation, multiscale_scattering=cfg.multiscale_scattering,
-               gamma=cfg.gamma, lam=cfg.lam, delta=cfg.delta, depth_scale=sd["depth_scale"])
+    m = Medium.from_config(mode, cfg, sd["depth_scale"])
     m.load_state_dict(sd["module"])
     return m.eval()
 

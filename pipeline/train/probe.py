@@ -182,16 +182,16 @@ def _render_held(trainer, views: Sequence[View]) -> list:
 def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndarray]) -> dict[str, float]:
     """PSNR with water over the masked pixels of all held-back views (pooled) and, for a medium, its mean
     attenuation 1 − A and backscatter B there."""
-    from pipeline.evaluate.metrics import psnr
+    from pipeline.evaluate.metrics import pooled_psnr
 
-    se, n, att, bs = 0.0, 0, [], []
-    for out, t, m in zip(outputs, targets, masks, strict=True):
-        d = out.I[m].astype(np.float64) - t[m]
-        se, n = se + float((d * d).sum()), n + d.size
+    att, bs = [], []
+    for out, m in zip(outputs, masks, strict=True):
         if out.A is not None and out.B is not None:
             att.append(1.0 - out.A[m])
             bs.append(out.B[m])
-    res = {"psnr": psnr(se / max(n, 1)), "covered": n / 3 / sum(m.size for m in masks)}
+    covered = sum(int(m.sum()) for m in masks)  # no pixel every mode covered: all modes tie at +inf
+    psnr = pooled_psnr([(out.I, t) for out, t in zip(outputs, targets, strict=True)], masks) if covered else math.inf
+    res = {"psnr": psnr, "covered": covered / sum(m.size for m in masks)}
     if att:
         a, b = float(np.concatenate(att).mean()), float(np.concatenate(bs).mean())
         res.update(attenuation=a, backscatter=b, effect=a + b)

@@ -34,7 +34,8 @@ COLLAPSE_BUDGET_SHARE = 0.02  # fewer Gaussians than this share of the budget: t
 WARN_POINT_COVERAGE = 0.98  # below this a view is reported as partly lost (a warning, not a failure)
 WARN_POINT_DEPTH = 0.5  # fewer of a view's points rendered at their distance than this: a warning (see below)
 FAR_FACTOR = 3.0  # a pixel rendered beyond this x the view's 95th-percentile point distance is "far behind"
-WARN_FAR_SHARE = 0.10  # more of a view's covered pixels far behind than this: a warning (real RUIE sand: 35 %)
+WARN_FAR_SHARE = 0.10  # more of a view's covered pixels far behind than this: a warning (real RUIE sand, before
+#                         the depth-band term: docs/DECISIONS.md, "The water must not eat the scene")
 DETAIL_WINDOW = 7  # pixels: the residual's local spread is measured in this square
 DETAIL_FACTOR = 1.5  # an uncovered pixel shows missing detail when its residual spread is this x the covered median
 WARN_UNCOVERED_DETAIL = 0.05  # more of a view's pixels than this uncovered with missing detail: a warning

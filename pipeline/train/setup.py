@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pipeline.config import TrainConfig
-from pipeline.scene.types import Scene, View
+from pipeline.scene.types import Scene, View, scaled_view
 from pipeline.splat.gaussians import GAUSSIAN_KEYS, init_from_points, init_random
 
 log = logging.getLogger(__name__)
@@ -47,10 +47,10 @@ def prepare_images(
         if t.shape != (cam.height, cam.width, 3):
             raise ValueError(f"image of {view.name!r} is {tuple(t.shape)}, camera says ({cam.height}, {cam.width}, 3)")
         if downscale > 1:
-            cam = cam.scaled(1.0 / downscale)
+            view = scaled_view(view, downscale)
+            cam = view.camera
             t = F.interpolate(t.permute(2, 0, 1)[None], size=(cam.height, cam.width), mode="area")[0]
             t = t.permute(1, 2, 0).contiguous()
-            view = View(view.name, cam, view.R, view.t, view.image_path)
         out_views.append(view)
         targets.append(t)
     return out_views, targets

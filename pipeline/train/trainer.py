@@ -32,8 +32,8 @@ from pipeline.splat.densify import Densifier
 from pipeline.splat.gaussians import GAUSSIAN_KEYS
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.train.hooks import Hook, ProgressFn, checkpoint_hook, eval_hook, log_hook, progress_hook
-from pipeline.train.image_losses import l1, ssim
-from pipeline.train.render import RenderOutput, ViewOutputs, render_gaussians, render_outputs, render_view, view_tensors
+from pipeline.train.image_losses import photometric_losses
+from pipeline.train.render import RenderOutput, ViewOutputs, render_gaussians, render_outputs, view_tensors
 from pipeline.train.setup import (
     ImageLike,
     active_sh_degree,
@@ -52,9 +52,6 @@ __all__ = [
     "TrainResult",
     "Trainer",
     "TrainingCancelled",
-    "photometric_losses",
-    "render_view",
-    "scene_extent",
     "train",
 ]
 
@@ -83,15 +80,6 @@ class TrainResult:
     checkpoint: Path | None = None
     elapsed_s: float = 0.0  # training seconds (steps only), summed across resumes
     medium: dict[str, Any] = field(default_factory=dict)  # medium modes: recovered per-channel coefficients
-
-
-def photometric_losses(render: Tensor, target: Tensor, ssim_weight: float) -> dict[str, Tensor]:
-    """3DGS loss as named, already-weighted terms (sum them once): (1 - w) L1 and w (1 - SSIM).
-    [H, W, 3] x2 -> {"l1": [], "dssim": []}"""
-    return {
-        "l1": (1.0 - ssim_weight) * l1(render, target),
-        "dssim": ssim_weight * (1.0 - ssim(render, target)),
-    }
 
 
 class Trainer:
@@ -259,10 +247,6 @@ class Trainer:
 
     def save(self, path: str | Path) -> Path:
         return save_checkpoint(path, self.state_dict())
-
-    def load(self, path: str | Path) -> None:
-        self.load_state_dict(load_checkpoint(path, map_location=self.device))
-        log.info("resumed from %s at iteration %d", path, self.iteration)
 
 
 def config_changes(saved: dict[str, Any], cfg: TrainConfig) -> list[str]:

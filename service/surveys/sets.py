@@ -23,11 +23,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
+from pipeline.scene.images import DECODABLE_EXTENSIONS
+
 from ..safe_fs import FolderTree
 from .exif import read_exif_time
 
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".webp", ".bmp", ".jp2", ".jxl",
-                            ".dpx", ".tga", ".ppm", ".pgm", ".hdr"})
+IMAGE_SUFFIXES = DECODABLE_EXTENSIONS
 HASH_CHUNK = 1 << 20
 
 

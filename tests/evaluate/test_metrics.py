@@ -6,10 +6,12 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from pipeline.evaluate.metrics import (
     coefficient_error,
     mean_ssim,
+    per_metre,
     pooled_mse,
     pooled_psnr,
     psnr,
@@ -28,6 +30,21 @@ def test_pooled_psnr_pools_pixels_not_views() -> None:
     assert psnr(0.0) == math.inf
     with pytest.raises(ValueError):
         pooled_mse([(a, c)])
+
+
+def test_pooled_psnr_of_tensors_pools_like_arrays() -> None:
+    """Training's held-out curve passes torch tensors: summed by torch in float64, pooled the same way."""
+    a, b = torch.zeros(4, 4, 3), torch.zeros(4, 4, 3)
+    c = torch.full((4, 4, 3), 0.1)  # mse 0.01 for the second pair, 0 for the first: pooled mse 0.005
+    assert pooled_psnr([(a, b), (a, c)]) == pytest.approx(-10 * math.log10(0.005))
+    assert pooled_psnr([(a, b)]) == math.inf
+    g = torch.Generator().manual_seed(0)
+    x, y = torch.rand(30, 40, 3, generator=g), torch.rand(30, 40, 3, generator=g)
+    assert pooled_psnr([(x, y)]) == -10 * math.log10(float((x.double() - y.double()).square().sum()) / x.numel())
+    assert pooled_psnr([(x, y)]) == pytest.approx(pooled_psnr([(x.numpy(), y.numpy())]), abs=1e-9)
+    keep = np.zeros((30, 40), bool)
+    keep[:10] = True
+    assert pooled_psnr([(x, y)], [keep]) == pytest.approx(pooled_psnr([(x[:10], y[:10])]), abs=1e-9)
 
 
 def test_masked_pooled_psnr_scores_only_the_kept_pixels() -> None:
@@ -70,3 +87,9 @@ def test_coefficient_error() -> None:
     e = coefficient_error([0.5, 0.2, 0.1], [0.55, 0.17, 0.11])
     assert e["abs_error"] == pytest.approx([0.05, 0.03, 0.01])
     assert e["rel_error"][0] == pytest.approx(0.05 / 0.55)
+
+
+def test_per_metre_divides_by_the_metres_per_scene_unit() -> None:
+    # one scene unit is 2 m: a coefficient of 0.5 per unit is 0.25 per metre
+    assert per_metre([0.5, 0.2, 0.1], 2.0) == pytest.approx([0.25, 0.1, 0.05])
+    assert per_metre((), 3.0) == []

@@ -7,7 +7,13 @@ import pytest
 import torch
 
 from pipeline.config import SynthConfig
-from pipeline.medium.formation import classical_formation, homogeneous_backscatter, transmission
+from pipeline.medium.formation import (
+    classical_formation,
+    composite_over_water,
+    dualphys_formation,
+    homogeneous_backscatter,
+    transmission,
+)
 from pipeline.medium.model import Medium
 from pipeline.scene.types import ray_length_factor
 from pipeline.synth.procedural import make_camera, synth_views
@@ -55,6 +61,22 @@ def test_uncovered_pixels_see_the_veiling_light():
     J = torch.zeros(1, 3, 4, 4)
     out = m(J, torch.ones(1, 1, 4, 4), alpha=torch.zeros(1, 1, 4, 4))
     torch.testing.assert_close(out.I, m.B_inf.detach().reshape(1, 3, 1, 1).expand(1, 3, 4, 4))
+
+
+@pytest.mark.parametrize("mode", ["homogeneous", "dualphys"])
+def test_medium_renders_eq4_where_covered_and_the_veil_where_not(mode):
+    """Medium's I is eq. 4 (dualphys_formation) with the backscatter of the covered fraction, plus B∞ over the
+    uncovered one, to the bit; with alpha = 1 it is eq. 4 itself."""
+    torch.manual_seed(0)
+    m = Medium(mode, depth_scale=2.0)
+    J, D, alpha = torch.rand(2, 3, 9, 7), torch.rand(2, 1, 9, 7) * 5, torch.rand(2, 1, 9, 7)
+    out = m(J, D, alpha)
+    binf = m.B_inf.reshape(1, 3, 1, 1)
+    assert torch.equal(out.I, J * out.A + alpha * out.B + (1.0 - alpha) * binf)
+    assert torch.equal(out.I, dualphys_formation(J, out.A, alpha * out.B) + (1.0 - alpha) * binf)
+    assert torch.equal(m(J, D).I, dualphys_formation(J, out.A, out.B))
+    ones = torch.ones_like(alpha)
+    assert torch.equal(composite_over_water(J, out.A, out.B, ones, m.B_inf), dualphys_formation(J, out.A, out.B))
 
 
 @pytest.mark.parametrize("mode", ["homogeneous", "dualphys"])

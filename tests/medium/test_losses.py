@@ -84,13 +84,6 @@ def test_edge_loss_is_zero_for_uniform_backscatter_on_flat_depth():
     assert float(L.edge_loss(rough, D, 2.0)) > 0.01
 
 
-def test_dark_channel_of_black_patch():
-    J = torch.rand(1, 3, 9, 9) * 0.5 + 0.5
-    J[..., 4, 4] = 0.0
-    dc = L.dark_channel(J, patch=3)
-    assert float(dc[0, 0, 4, 4]) == 0.0 and float(dc[0, 0, 3, 3]) == 0.0 and float(dc[0, 0, 0, 0]) > 0.4
-
-
 def test_veil_bound_costs_only_backscatter_brighter_than_the_photo():
     photo = torch.full((1, 3, 4, 4), 0.3)
     ones = torch.ones(1, 1, 4, 4)

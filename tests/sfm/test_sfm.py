@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.config import SfmConfig
+from pipeline.scene.align import align_to_reference
 from pipeline.scene.colmap import read_colmap
 from pipeline.scene.images import read_image, write_image
 from pipeline.scene.loader import load_images, load_scene
@@ -18,7 +19,6 @@ from pipeline.sfm.recipe import (
     SfmError,
     TooFewImagesError,
     TooFewRegisteredError,
-    align_to_reference,
     choose_matcher,
     is_numbered_sequence,
     run_sfm,

@@ -3,8 +3,6 @@ a held-out PSNR floor, and cancel + checkpoint + resume matching an uninterrupte
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -20,7 +18,7 @@ from pipeline.config import (
 )
 from pipeline.scene.types import Camera, Scene, View
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
-from pipeline.train.image_losses import pooled_psnr, ssim
+from pipeline.train.image_losses import ssim
 from pipeline.train.setup import active_sh_degree, initial_gaussians, means_lr, prepare_images, scene_extent
 from pipeline.train.trainer import CHECKPOINT_NAME, TrainingCancelled, config_changes, train
 
@@ -53,13 +51,6 @@ def test_ssim_matches_graphdeco_2d_window():
     # a batch of images is the mean over the batch
     batch = ssim(torch.stack([a, a]), torch.stack([b, a]))
     assert float(batch) == pytest.approx((float(ssim(a, b)) + 1.0) / 2, abs=1e-12)
-
-
-def test_pooled_psnr_pools_mse_not_psnr():
-    a, b = torch.zeros(4, 4, 3), torch.zeros(4, 4, 3)
-    c = torch.full((4, 4, 3), 0.1)  # mse 0.01 for the second pair, 0 for the first: pooled mse 0.005
-    assert pooled_psnr([(a, b), (a, c)]) == pytest.approx(-10 * math.log10(0.005))
-    assert pooled_psnr([(a, b)]) == math.inf
 
 
 def test_schedules():
