@@ -1,6 +1,8 @@
 """Typed configs, one dataclass per concern, with named presets.
 
 Science configs are plain dataclasses (no pydantic at this layer); each field's comment is its documentation.
+The training configs are frozen: a job's is resolved once (``pipeline.train.resolve``) and every variant of it
+(the mode probe's, the collapse guard's retry) is made with ``dataclasses.replace``.
 Service settings live in ``service/`` (pydantic-settings). ``to_dict``/``from_dict`` give the JSON form saved
 next to outputs so a run can be reproduced.
 """
@@ -71,7 +73,7 @@ def from_dict(cls: type[C], data: dict[str, Any]) -> C:
 __all__ = ["SynthConfig", "SfmConfig", "to_dict", "from_dict", "field"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class DensifyConfig:
     """Adaptive density control (``pipeline.splat.densify``): gsplat's ``DefaultStrategy``, 3DGS schedule.
 
@@ -111,7 +113,7 @@ class DensifyConfig:
         )
 
 
-@dataclass
+@dataclass(frozen=True)
 class MediumConfig:
     """The water model in training (``pipeline.medium``); modes ``homogeneous`` and ``dualphys``."""
 
@@ -140,15 +142,15 @@ class MediumConfig:
 
     def __post_init__(self) -> None:
         # JSON round trips turn tuples into lists.
-        self.init_optical_depth = tuple(float(x) for x in self.init_optical_depth)  # type: ignore[assignment]
-        self.losses = tuple(self.losses)
+        object.__setattr__(self, "init_optical_depth", tuple(float(x) for x in self.init_optical_depth))
+        object.__setattr__(self, "losses", tuple(self.losses))
 
 
 TrainMode = Literal["3dgs", "homogeneous", "dualphys"]
 Backend = Literal["auto", "torch", "cpu", "cuda"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainConfig:
     """Training (``pipeline.train.trainer``). Defaults are graphdeco 3DGS's 30k-iteration recipe."""
 
@@ -182,21 +184,24 @@ class TrainConfig:
     def __post_init__(self) -> None:
         # JSON round trips turn the nested config into a dict and the tuple into a list.
         if isinstance(self.densify, dict):
-            self.densify = from_dict(DensifyConfig, self.densify)
+            object.__setattr__(self, "densify", from_dict(DensifyConfig, self.densify))
         if isinstance(self.medium, dict):
-            self.medium = from_dict(MediumConfig, self.medium)
+            object.__setattr__(self, "medium", from_dict(MediumConfig, self.medium))
         if self.mode not in ("3dgs", "homogeneous", "dualphys"):
             raise ValueError(f"mode must be 3dgs, homogeneous or dualphys, got {self.mode!r}")
-        self.background = tuple(float(c) for c in self.background)  # type: ignore[assignment]
+        object.__setattr__(self, "background", tuple(float(c) for c in self.background))
         if len(self.background) != 3:
             raise ValueError(f"background must have 3 components, got {self.background}")
 
 
-def scaled_train_config(iterations: int, checkpoint_every: int, max_gaussians: int = 0) -> TrainConfig:
-    """A run of ``iterations`` with the 30k schedule (densification, SH warm-up) compressed to fit
-    (``DensifyConfig.scaled``); ``max_gaussians`` 0 = no cap."""
+def rescheduled(cfg: TrainConfig, iterations: int, *, checkpoint_every: int, max_gaussians: int) -> TrainConfig:
+    """``cfg`` as a run of ``iterations``: the 30k schedule (densification, SH warm-up) compressed to fit
+    (``DensifyConfig.scaled``), this checkpoint cadence and Gaussian cap (0 = no cap); every other field kept.
+    The densification section is the 30k recipe's, rescaled, not ``cfg``'s (a scaled schedule cannot be
+    scaled again without knowing what it was scaled from)."""
     factor = iterations / 30_000
-    return TrainConfig(
+    return dataclasses.replace(
+        cfg,
         iterations=iterations,
         sh_degree_interval=max(1, round(1000 * factor)),
         densify=dataclasses.replace(DensifyConfig().scaled(factor), max_gaussians=max_gaussians),
@@ -204,10 +209,17 @@ def scaled_train_config(iterations: int, checkpoint_every: int, max_gaussians: i
     )
 
 
+def scaled_train_config(iterations: int, checkpoint_every: int, max_gaussians: int = 0) -> TrainConfig:
+    """A run of ``iterations`` with the 30k schedule (densification, SH warm-up) compressed to fit
+    (``DensifyConfig.scaled``); ``max_gaussians`` 0 = no cap."""
+    return rescheduled(TrainConfig(), iterations, checkpoint_every=checkpoint_every, max_gaussians=max_gaussians)
+
+
 # fast: a preview (refine 50-1500 every 100, reset at 1000, SH +1 every 100, at most 100k Gaussians);
 # balanced: a third of the paper schedule (refine 167-5000, reset every 1000, at most 300k);
 # paper: graphdeco's 30k recipe unchanged, no cap.
-# Copy before editing (`train_preset`): the instances here are shared.
+# The configs are frozen; derive variants with ``dataclasses.replace`` (the resolved job config:
+# pipeline.train.resolve).
 TRAIN_PRESETS: dict[str, TrainConfig] = {
     "fast": scaled_train_config(3_000, checkpoint_every=500, max_gaussians=100_000),
     "balanced": scaled_train_config(10_000, checkpoint_every=1000, max_gaussians=300_000),
@@ -221,6 +233,6 @@ def train_preset(name: str) -> TrainConfig:
         raise ValueError(f"unknown training preset {name!r}; choose from {sorted(TRAIN_PRESETS)}")
     return from_dict(TrainConfig, to_dict(TRAIN_PRESETS[name]))
 
-__all__ += ["DensifyConfig", "TrainConfig", "TRAIN_PRESETS", "train_preset", "scaled_train_config"]
+__all__ += ["DensifyConfig", "TrainConfig", "TRAIN_PRESETS", "train_preset", "scaled_train_config", "rescheduled"]
 
 __all__ += ["MediumConfig"]

@@ -9,9 +9,10 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.config import SynthConfig
+from pipeline.config import SynthConfig, TrainConfig, from_dict
 from pipeline.job.layout import JobLayout
 from pipeline.synth.procedural import generate_scene
+from pipeline.train.checkpoint import load_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +54,10 @@ def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
     for f in (layout.ply, layout.report_json, layout.report_html):
         assert f.is_file(), f
     assert len(list(layout.export_folder("restored").glob("*.png"))) == 12
+    # the resolved config is saved, and it is the one the model was trained with
+    resolved = json.loads(layout.train_config.read_text())
+    assert (resolved["mode"], resolved["iterations"], resolved["downscale"]) == ("homogeneous", 60, 2)
+    assert from_dict(TrainConfig, load_checkpoint(layout.checkpoint)["config"]) == from_dict(TrainConfig, resolved)
 
     assert main(argv) == 0
     out = capsys.readouterr()

@@ -131,16 +131,15 @@ def row_config(row: AblationRow, cfg: AblationConfig, water: dict):
     """The TrainConfig of one row: the scaled schedule, the row's mode and switches, the controller's settings
     when WAT is on."""
     from pipeline.config import scaled_train_config
-    from pipeline.train.stage import apply_water_decision
+    from pipeline.train.resolve import medium_with_water
 
     tc = scaled_train_config(cfg.iterations, checkpoint_every=0, max_gaussians=100_000)
-    tc.mode, tc.seed, tc.backend, tc.log_every = row.mode, cfg.seed, cfg.backend, 0  # type: ignore[assignment]
-    m = tc.medium
-    m.rgb_attenuation, m.multiscale_scattering = row.rgb_attenuation, row.multiscale_scattering
-    m.water_adaptation, m.losses = row.water_adaptation, row.losses
+    m = dataclasses.replace(tc.medium, rgb_attenuation=row.rgb_attenuation,
+                            multiscale_scattering=row.multiscale_scattering, water_adaptation=row.water_adaptation,
+                            losses=row.losses)
     if row.mode != "3dgs":
-        apply_water_decision(tc, water)  # does nothing when water_adaptation is off
-    return tc
+        m = medium_with_water(m, water)  # unchanged when water_adaptation is off
+    return dataclasses.replace(tc, mode=row.mode, seed=cfg.seed, backend=cfg.backend, log_every=0, medium=m)
 
 
 def _score_row(trainer, views, photos, clean) -> dict[str, float]:

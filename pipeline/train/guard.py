@@ -14,12 +14,13 @@ import json
 import logging
 import os
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from pipeline.config import TrainConfig, from_dict, to_dict
+from pipeline.config import TrainConfig
 from pipeline.job.layout import CHECKPOINT_NAME, COLLAPSED_NAME, RECOVERY_NAME
 from pipeline.medium.losses import LossWeights
 from pipeline.scene.types import Scene, View
@@ -46,13 +47,12 @@ class ModelCollapsedError(RuntimeError):
 def safer_config(cfg: TrainConfig) -> tuple[TrainConfig, dict[str, Any]]:
     """The retry's config and what it changed: no opacity reset at all, the medium on later, the sparse points'
     surface term stronger. Only the schedule and the surface term change, never the data or the mode."""
-    c = from_dict(TrainConfig, to_dict(cfg))
-    c.densify.reset_every = c.iterations + 1
-    c.medium.start_fraction = max(c.medium.start_fraction, SAFER_MEDIUM_START)
-    weights = dict(c.medium.loss_weights)
+    weights = dict(cfg.medium.loss_weights)
     weights["w_surface"] = SAFER_SURFACE_FACTOR * weights.get("w_surface", LossWeights().w_surface)
-    c.medium.loss_weights = weights
-    changes = {"opacity_reset": "off", "medium_start_fraction": c.medium.start_fraction,
+    medium = replace(cfg.medium, start_fraction=max(cfg.medium.start_fraction, SAFER_MEDIUM_START),
+                     loss_weights=weights)
+    c = replace(cfg, densify=replace(cfg.densify, reset_every=cfg.iterations + 1), medium=medium)
+    changes = {"opacity_reset": "off", "medium_start_fraction": medium.start_fraction,
                "w_surface": weights["w_surface"]}
     return c, changes
 

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.config import TrainConfig, scaled_train_config, to_dict
+from pipeline.config import TrainConfig, rescheduled, to_dict
 from pipeline.job.layout import SELECTION_NAME
 from pipeline.medium.estimate import MediumEstimate
 from pipeline.scene.types import Scene, View, view_ranges
@@ -161,17 +161,16 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig) -> tuple[str, str]:
 
 
 def probe_config(base: TrainConfig, cfg: ProbeConfig, width: int, mode: str) -> TrainConfig:
-    """A short run of ``mode`` in the probe's schedule: warm-up + iterations, SH degree 1, the medium on
-    right after the warm-up; the medium section (water decision) is taken from ``base``."""
+    """``base`` (the job's resolved config, ``pipeline.train.resolve``) as a short run of ``mode`` in the probe's
+    schedule: warm-up + iterations with the 30k schedule compressed to fit, the probe's Gaussian cap and SH
+    degree, its image width, the medium (``base``'s, with the water decision) on right after the warm-up; no
+    checkpoints, log lines or held-out evaluation."""
     total = cfg.warmup + cfg.iterations
-    c = scaled_train_config(total, checkpoint_every=0, max_gaussians=cfg.max_gaussians)
-    c.mode = mode  # type: ignore[assignment]
-    c.seed, c.backend, c.log_every, c.sh_degree = base.seed, base.backend, 0, cfg.sh_degree
-    c.downscale = max(1, math.ceil(width / cfg.max_width))
-    c.medium = copy.deepcopy(base.medium)
-    c.medium.start_fraction = cfg.warmup / total
-    c.medium.lr_reference_iterations = cfg.lr_reference_iterations
-    return c
+    c = rescheduled(base, total, checkpoint_every=0, max_gaussians=cfg.max_gaussians)
+    medium = dataclasses.replace(base.medium, start_fraction=cfg.warmup / total,
+                                 lr_reference_iterations=cfg.lr_reference_iterations)
+    return dataclasses.replace(c, mode=mode, log_every=0, eval_every=0, sh_degree=cfg.sh_degree,
+                               downscale=max(1, math.ceil(width / cfg.max_width)), medium=medium)
 
 
 def _render_held(trainer, views: Sequence[View]) -> list:

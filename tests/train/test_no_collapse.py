@@ -18,7 +18,7 @@ from pipeline.scene.loader import load_scene
 from pipeline.scene.types import ray_length_factor
 from pipeline.synth.procedural import generate_scene
 from pipeline.synth.water import WATER_PRESETS
-from pipeline.train.stage import apply_water_decision
+from pipeline.train.resolve import medium_with_water
 from pipeline.train.trainer import Trainer
 from pipeline.water import classify
 
@@ -28,8 +28,7 @@ def _config(iterations: int, images) -> tuple[TrainConfig, dict]:
     decision = classify(images[::2]).to_dict()
     cfg = TrainConfig(mode="dualphys", iterations=iterations, sh_degree_interval=max(1, iterations // 30),
                       densify=train_preset("fast").densify.scaled(iterations / 30_000), backend="cpu", log_every=0,
-                      medium=MediumConfig())
-    apply_water_decision(cfg, decision)
+                      medium=medium_with_water(MediumConfig(), decision))
     return cfg, decision
 
 

@@ -17,6 +17,7 @@ from pipeline.scene.types import Camera, Scene, View
 from pipeline.synth.procedural import generate_scene
 from pipeline.train.budget import MIN_GAUSSIANS, scene_budget
 from pipeline.train.probe import ModeScore, ProbeConfig, decide, holdout_split
+from pipeline.train.resolve import resolve_train_config
 from pipeline.train.stage import select_mode
 from pipeline.water import classify
 
@@ -74,6 +75,11 @@ def test_budget_scales_with_the_scene():
     assert scene_budget(200, 1600, 1200, preset_sh=1).sh_degree == 1
 
 
+def _base(train_scene: Scene, water: dict):
+    """The config a mode-auto job's probe starts from."""
+    return resolve_train_config(JobOptions(mode="auto"), train_scene.views[0].camera.width, water, None)
+
+
 def _probe(tmp_path, preset: str) -> tuple[dict, float]:
     """What a job's train stage does for mode auto, on a generated scene with its true cameras."""
     root = generate_scene(SynthConfig(views=16, width=120, height=90, preset=preset, seed=0), tmp_path / preset)
@@ -84,7 +90,7 @@ def _probe(tmp_path, preset: str) -> tuple[dict, float]:
     water = classify(images[::2]).to_dict()
     job = tmp_path / f"job-{preset}"
     t0 = time.perf_counter()
-    sel = select_mode(job, JobOptions(mode="auto"), train_scene, images, water, StageContext())
+    sel = select_mode(job, _base(train_scene, water), train_scene, images, water, StageContext())
     seconds = time.perf_counter() - t0
     assert json.loads(JobLayout(job).selection.read_text()) == sel
     return sel, seconds
@@ -112,8 +118,8 @@ def test_auto_picks_3dgs_without_water_and_a_medium_in_turbid_water(tmp_path, re
     train_scene = scene.subset(train_views)
     images = load_images(train_scene)
     t0 = time.perf_counter()
-    again = select_mode(tmp_path / "job-none", JobOptions(mode="auto"), train_scene, images,
-                        classify(images[::2]).to_dict(), StageContext())
+    water = classify(images[::2]).to_dict()
+    again = select_mode(tmp_path / "job-none", _base(train_scene, water), train_scene, images, water, StageContext())
     assert again == none and time.perf_counter() - t0 < 5.0
 
 

@@ -10,6 +10,8 @@ Measured on this machine (1000 iterations): 3DGS on clean 24.3 dB, DualPhys 24.0
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
 from pipeline.config import SynthConfig, scaled_train_config
@@ -18,7 +20,7 @@ from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.scene.split import split_views
 from pipeline.synth.procedural import generate_scene
-from pipeline.train.stage import apply_water_decision
+from pipeline.train.resolve import medium_with_water
 from pipeline.train.trainer import Trainer
 from pipeline.water import classify
 
@@ -37,9 +39,8 @@ def medium_scene(tmp_path_factory):
 def _train_and_score(root, scene, train_views, test_views, mode: str, folder: str):
     images = [read_image(root / folder / v.name) for v in train_views]
     cfg = scaled_train_config(ITERATIONS, checkpoint_every=0, max_gaussians=100_000)
-    cfg.mode, cfg.backend, cfg.log_every = mode, "cpu", 0  # type: ignore[assignment]
-    if mode != "3dgs":
-        apply_water_decision(cfg, classify(images[::2]).to_dict())
+    medium = medium_with_water(cfg.medium, classify(images[::2]).to_dict()) if mode != "3dgs" else cfg.medium
+    cfg = replace(cfg, mode=mode, backend="cpu", log_every=0, medium=medium)
     tr = Trainer(scene.subset(train_views), images, cfg)
     tr.run([])
     pairs = [(tr.outputs(v).J, read_image(root / "clean" / v.name)) for v in test_views]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -96,15 +98,13 @@ def test_no_opacity_reset_near_or_after_the_medium_start(medium_scene, preset):
     from pipeline.config import train_preset
 
     scene, images = medium_scene
-    cfg = train_preset(preset)
-    cfg.mode, cfg.backend = "dualphys", "cpu"
+    cfg = replace(train_preset(preset), mode="dualphys", backend="cpu")
     tr = Trainer(scene, images, cfg)
     until = tr.densifier.strategy.reset_until
     assert 0 < until <= tr.medium.start - 2 * cfg.densify.refine_every
     resets = [it for it in range(1, cfg.densify.refine_stop) if it % cfg.densify.reset_every == 0 and it < until]
     assert all(it <= tr.medium.start - 2 * cfg.densify.refine_every for it in resets)
-    cfg.mode = "3dgs"
-    assert Trainer(scene, images, cfg).densifier.strategy.reset_until == 0
+    assert Trainer(scene, images, replace(cfg, mode="3dgs")).densifier.strategy.reset_until == 0
 
 
 @pytest.mark.parametrize("preset", ["fast", "paper"])
@@ -115,10 +115,9 @@ def test_medium_modes_refine_while_the_medium_settles(medium_scene, preset):
     from pipeline.config import train_preset
 
     scene, images = medium_scene
-    cfg = train_preset(preset)
-    cfg.mode, cfg.backend = "homogeneous", "cpu"
+    cfg = replace(train_preset(preset), mode="homogeneous", backend="cpu")
     stop = Trainer(scene, images, cfg).densifier.strategy.refine_stop_iter
     assert stop == round(cfg.densify.refine_stop * cfg.densify.medium_refine_factor) > cfg.densify.refine_stop
     assert stop < cfg.iterations
-    cfg.mode = "3dgs"
-    assert Trainer(scene, images, cfg).densifier.strategy.refine_stop_iter == cfg.densify.refine_stop
+    plain = Trainer(scene, images, replace(cfg, mode="3dgs"))
+    assert plain.densifier.strategy.refine_stop_iter == cfg.densify.refine_stop

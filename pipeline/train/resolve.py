@@ -1,0 +1,73 @@
+"""A job's training config, resolved in one place.
+
+Everything that decides how a job trains meets in :func:`resolve_train_config`: the preset and ``--iterations``
+(the schedule), the mode (the job's, or what ``--mode auto``'s probe chose, with the Gaussian budget and SH
+degree it sized to the scene), the seed, the downscale for ``max_width``, the speed-vs-error curve's cadence
+and the classifier's water decision. The result is frozen; the train stage saves it as the job's
+``train/config.json``, and the mode probe (``pipeline.train.probe.probe_config``) and the collapse guard's retry
+(``pipeline.train.guard.safer_config``) derive theirs from it with ``dataclasses.replace``. Before, five
+places assembled or patched the config in place, and two of them disagreed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import replace
+from typing import Any
+
+from pipeline.config import MediumConfig, TrainConfig, scaled_train_config, train_preset
+from pipeline.job.options import JobOptions
+from pipeline.train.hooks import curve_every
+
+# Mode "auto" before its probe has chosen resolves to this: the probe's base, the mode whose medium section
+# carries the whole water decision (the probe sets each candidate's mode itself).
+PROBE_BASE_MODE = "dualphys"
+
+
+def medium_with_water(medium: MediumConfig, decision: Mapping[str, Any]) -> MediumConfig:
+    """``medium`` with the adaptive controller's settings (paper §5) from a water decision
+    (:meth:`pipeline.water.decision.WaterDecision.to_dict`, the job's water.json). The one place the decision's
+    keys become :class:`~pipeline.config.MediumConfig` fields. Unchanged when ``water_adaptation`` is off (the
+    ablation's rows without WAT); a decision without ``init_optical_depth`` (older water.json) keeps the
+    medium's starting optical depth."""
+    if not medium.water_adaptation:
+        return medium
+    return replace(medium, lr_attenuation=decision["lr_attenuation"], lr_scattering=decision["lr_scattering"],
+                   alpha_w=decision["alpha"], beta_w=decision["beta"],
+                   start_fraction=decision["medium_start_fraction"],
+                   init_optical_depth=tuple(decision.get("init_optical_depth", medium.init_optical_depth)))
+
+
+def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] | None,
+                         selection: Mapping[str, Any] | None) -> TrainConfig:
+    """The frozen TrainConfig a job trains with.
+
+    - schedule: the preset ``opts.preset``; with ``opts.iterations`` the 30k schedule compressed to that many
+      iterations, a checkpoint every fifth of the run and a 300k Gaussian cap;
+    - mode: ``selection["chosen"]`` when the probe has chosen, else ``opts.mode``; mode "auto" without a
+      selection is the probe's base (:data:`PROBE_BASE_MODE`);
+    - with a ``selection`` (``pipeline.train.probe.select_for_job``): its budget's SH degree and Gaussian cap;
+    - ``opts.seed``; the integer downscale that brings ``width`` (the scene's image width) to at most
+      ``opts.max_width``; held-out evaluation on the speed-vs-error curve's schedule;
+    - medium modes with a ``water`` decision: the controller's settings (:func:`medium_with_water`).
+    """
+    cfg = train_preset(opts.preset)  # also refuses an unknown preset name
+    if opts.iterations is not None:
+        cfg = scaled_train_config(opts.iterations, checkpoint_every=max(1, opts.iterations // 5),
+                                  max_gaussians=300_000)
+    mode = selection["chosen"] if selection is not None else opts.mode
+    if mode == "auto":
+        mode = PROBE_BASE_MODE
+    sh_degree, densify = cfg.sh_degree, cfg.densify
+    if selection is not None:  # the Gaussian budget and SH degree scaled to the scene (pipeline.train.budget)
+        sh_degree = selection["budget"]["sh_degree"]
+        densify = replace(densify, max_gaussians=selection["budget"]["max_gaussians"])
+    medium = cfg.medium
+    if mode != "3dgs" and water is not None:
+        medium = medium_with_water(medium, water)
+    return replace(cfg, mode=mode, seed=opts.seed, downscale=max(1, math.ceil(width / opts.max_width)),
+                   eval_every=curve_every(cfg.iterations), sh_degree=sh_degree, densify=densify, medium=medium)
+
+
+__all__ = ["PROBE_BASE_MODE", "medium_with_water", "resolve_train_config"]

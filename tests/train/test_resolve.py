@@ -1,0 +1,74 @@
+"""A job's TrainConfig is resolved in one place (pipeline.train.resolve), frozen, and everything else derives
+from it: the mode probe's runs, the collapse guard's retry."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import FrozenInstanceError, replace
+
+import pytest
+
+from pipeline.config import MediumConfig, TrainConfig, from_dict, to_dict
+from pipeline.job.options import JobOptions
+from pipeline.train.guard import safer_config
+from pipeline.train.probe import ProbeConfig, probe_config
+from pipeline.train.resolve import medium_with_water, resolve_train_config
+from pipeline.water.controller import controller_settings
+from pipeline.water.decision import WaterDecision
+
+
+def _water(water_type: str = "turbid") -> dict:
+    """A water decision as the train stage reads it back from the job's water.json."""
+    probs = {k: 0.8 if k == water_type else 0.1 for k in ("clear", "medium", "turbid")}
+    decision = WaterDecision(water_type, probs, 0.5, 1.0, 8, controller_settings(water_type))  # type: ignore[arg-type]
+    return json.loads(json.dumps(decision.to_dict()))
+
+
+def test_the_resolved_config_is_frozen_and_carries_the_water_decision():
+    water = _water("clear")
+    cfg = resolve_train_config(JobOptions(mode="dualphys", seed=7, max_width=400), 1000, water, None)
+    with pytest.raises(FrozenInstanceError):
+        cfg.iterations = 1  # type: ignore[misc]
+    with pytest.raises(FrozenInstanceError):
+        cfg.medium.alpha_w = 2.0  # type: ignore[misc]
+    assert (cfg.mode, cfg.seed, cfg.downscale) == ("dualphys", 7, 3)
+    m = cfg.medium
+    assert (m.lr_attenuation, m.lr_scattering, m.alpha_w, m.beta_w, m.start_fraction) == (
+        water["lr_attenuation"], water["lr_scattering"], water["alpha"], water["beta"],
+        water["medium_start_fraction"])
+    assert m.init_optical_depth == tuple(water["init_optical_depth"])
+    assert from_dict(TrainConfig, json.loads(json.dumps(to_dict(cfg)))) == cfg  # what train/config.json holds
+    # plain splatting has no medium to adapt; a medium without water adaptation (ablation rows) ignores it
+    assert resolve_train_config(JobOptions(mode="3dgs"), 1000, water, None).medium == MediumConfig()
+    off = MediumConfig(water_adaptation=False)
+    assert medium_with_water(off, water) is off
+
+
+def test_auto_resolves_to_the_probe_base_and_then_to_the_probes_choice():
+    water, opts = _water("turbid"), JobOptions(mode="auto", seed=3)
+    base = resolve_train_config(opts, 240, water, None)
+    assert base.mode == "dualphys" and base.medium == medium_with_water(MediumConfig(), water)
+    sel = {"chosen": "homogeneous", "budget": {"sh_degree": 1, "max_gaussians": 40_000}}
+    final = resolve_train_config(opts, 240, water, sel)
+    assert (final.mode, final.sh_degree, final.densify.max_gaussians) == ("homogeneous", 1, 40_000)
+    assert replace(final, mode=base.mode, sh_degree=base.sh_degree, densify=base.densify) == base
+    assert resolve_train_config(opts, 240, water, {**sel, "chosen": "3dgs"}).medium == MediumConfig()
+    with pytest.raises(ValueError, match="unknown training preset"):
+        resolve_train_config(JobOptions(preset="slowest"), 240, None, None)
+
+
+def test_the_probe_and_the_retry_derive_from_the_resolved_config():
+    base = resolve_train_config(JobOptions(mode="auto", seed=5), 640, _water("clear"), None)
+    pc = ProbeConfig()
+    probe = probe_config(base, pc, 640, "homogeneous")
+    assert (probe.mode, probe.seed, probe.backend, probe.iterations) == ("homogeneous", 5, base.backend,
+                                                                         pc.warmup + pc.iterations)
+    assert (probe.downscale, probe.sh_degree, probe.densify.max_gaussians) == (5, pc.sh_degree, pc.max_gaussians)
+    assert (probe.checkpoint_every, probe.log_every, probe.eval_every) == (0, 0, 0)
+    assert probe.medium.start_fraction == pc.warmup / probe.iterations
+    # the water decision reaches the probe through the base, not a second time
+    assert replace(probe.medium, start_fraction=base.medium.start_fraction,
+                   lr_reference_iterations=base.medium.lr_reference_iterations) == base.medium
+    safe, _ = safer_config(base)
+    assert safe.medium.start_fraction == 0.5 and safe.densify.reset_every == base.iterations + 1
+    assert replace(safe, densify=base.densify, medium=base.medium) == base
