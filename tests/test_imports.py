@@ -122,3 +122,15 @@ def test_the_job_package_imports_no_torch():
                      else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
             offenders += [f"{p.name}: {n}" for n in names if n.split(".")[0] in ("torch", "numpy", "numba")]
     assert not offenders, offenders
+
+
+def test_no_module_shadows_the_standard_library_or_an_installed_package():
+    """A module named like ``select``, ``types`` or ``lpips`` reads as the other one and breaks as soon as
+    something runs with its folder on sys.path."""
+    import importlib.metadata
+    import sys
+
+    installed = {name for name in importlib.metadata.packages_distributions() if not name.startswith("_")}
+    taken = (set(sys.stdlib_module_names) | installed) - set(PACKAGES)
+    bad = sorted(m for m in _modules() if m.rpartition(".")[2] in taken)
+    assert not bad, f"modules named like a standard-library module or an installed package: {bad}"

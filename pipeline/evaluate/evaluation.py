@@ -38,7 +38,7 @@ from pipeline.evaluate.metrics import (
 )
 from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
 from pipeline.job.layout import JobLayout
-from pipeline.scene.types import View, scaled_view
+from pipeline.scene.records import View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel
 from pipeline.train.render import ViewOutputs, render_outputs

@@ -22,7 +22,7 @@ from pipeline.evaluate.evaluation import json_safe, stage_timings
 from pipeline.evaluate.metrics import per_metre
 from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
 from pipeline.job.markers import atomic_write_json, atomic_write_text
-from pipeline.scene.types import scaled_view
+from pipeline.scene.records import scaled_view
 
 log = logging.getLogger(__name__)
 

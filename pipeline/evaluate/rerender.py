@@ -11,7 +11,7 @@ import numpy as np
 
 from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
 from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
-from pipeline.scene.types import View, scaled_view
+from pipeline.scene.records import View, scaled_view
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.scene.images import write_image
-from pipeline.scene.types import View
+from pipeline.scene.records import View
 from pipeline.train.model import model_from_state
 from pipeline.train.render import render_outputs
 

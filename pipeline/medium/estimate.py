@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from pipeline.scene.types import Sightings, View
+from pipeline.scene.records import Sightings, View
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,7 @@ from pipeline.config import MediumConfig
 from pipeline.medium.estimate import measure_water
 from pipeline.medium.losses import LossWeights, loss_terms
 from pipeline.medium.model import Medium, MediumOutput
-from pipeline.scene.types import Scene, View, ray_length_factor, view_ranges
+from pipeline.scene.records import Scene, View, ray_length_factor, view_ranges
 from pipeline.train.quality import view_point_ranges
 
 log = logging.getLogger(__name__)

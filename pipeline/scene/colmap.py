@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.scene.types import Camera, Scene, Sightings, View
+from pipeline.scene.records import Camera, Scene, Sightings, View
 
 log = logging.getLogger(__name__)
 

@@ -193,7 +193,7 @@ def resize_area(img: np.ndarray, factor: float) -> np.ndarray:
     """Downscale by ``factor`` in (0, 1] with area averaging (antialiased).  # [H, W, C] -> [h, w, C]
 
     The output size is ``max(1, round(H * factor)) x max(1, round(W * factor))``, the same rounding as
-    :meth:`~pipeline.scene.types.Camera.scaled`, so a scaled camera and a resized image always agree.
+    :meth:`~pipeline.scene.records.Camera.scaled`, so a scaled camera and a resized image always agree.
     """
     if not 0.0 < factor <= 1.0:
         raise ValueError(f"resize_area: factor must be in (0, 1], got {factor}")

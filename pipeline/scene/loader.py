@@ -14,7 +14,7 @@ SeaThru-NeRF sets, SIMPLE_RADIAL from a plain COLMAP run, ...) is undistorted to
 files are unchanged (size and mtime fingerprint).
 
 Resolution: ``downscale`` is a divisor (2 = half width and height, like 3DGS's ``-r 2``). It scales the
-cameras with :meth:`~pipeline.scene.types.Camera.scaled` (:func:`~pipeline.scene.types.scaled_view`); the view's
+cameras with :meth:`~pipeline.scene.records.Camera.scaled` (:func:`~pipeline.scene.records.scaled_view`); the view's
 camera is then the single source of truth for the image size, and :func:`load_view_image` / :func:`load_images`
 read each file and area-average it down to that size.
 """
@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.scene.colmap import UnsupportedCameraError, has_model, quiet_pycolmap, read_colmap
 from pipeline.scene.images import read_image, resize_area_to
-from pipeline.scene.types import Scene, View, scaled_view
+from pipeline.scene.records import Scene, View, scaled_view
 
 log = logging.getLogger(__name__)
 

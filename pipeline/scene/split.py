@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipeline.scene.types import View
+from pipeline.scene.records import View
 
 
 def split_views(views: list[View], every: int = 8) -> tuple[list[View], list[View]]:

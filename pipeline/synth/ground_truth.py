@@ -21,7 +21,7 @@ import numpy as np
 
 from pipeline.scene.images import resize_area_to
 from pipeline.scene.loader import load_scene, load_view_image
-from pipeline.scene.types import Scene, View
+from pipeline.scene.records import Scene, View
 from pipeline.synth.water import TRUE_WATER_FILE
 
 log = logging.getLogger(__name__)

@@ -52,7 +52,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from pipeline.scene.types import Camera, View
+from pipeline.scene.records import Camera, View
 from pipeline.synth.photo_path import photo_survey_path
 from pipeline.synth.photo_texture import Mosaic, PhotoBox, PhotoSet, load_photos, make_mosaic, mosaic_albedo
 from pipeline.synth.photo_world import Terrain, make_terrain, march, normals

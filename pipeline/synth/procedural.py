@@ -29,7 +29,7 @@ import torch
 
 from pipeline.config import SynthConfig, to_dict
 from pipeline.scene.colmap import rotmat_to_qvec
-from pipeline.scene.types import Camera, View, ray_length_factor
+from pipeline.scene.records import Camera, View, ray_length_factor
 from pipeline.synth.path import survey_path
 from pipeline.synth.water import TRUE_WATER_FILE, WATER_PRESETS, underwater_image
 from pipeline.synth.world import World, cast, make_world

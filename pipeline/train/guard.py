@@ -23,7 +23,7 @@ import torch
 from pipeline.config import TrainConfig
 from pipeline.job.layout import CHECKPOINT_NAME, COLLAPSED_NAME, RECOVERY_NAME
 from pipeline.medium.losses import LossWeights
-from pipeline.scene.types import Scene, View
+from pipeline.scene.records import Scene, View
 from pipeline.train.budget import pixel_budget
 from pipeline.train.checkpoint import load_checkpoint
 from pipeline.train.quality import assess_state

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from torch import Tensor
 
 from pipeline.evaluate.metrics import pooled_psnr
-from pipeline.scene.types import View
+from pipeline.scene.records import View
 
 if TYPE_CHECKING:
     from pipeline.train.trainer import Trainer

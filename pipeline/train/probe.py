@@ -34,7 +34,7 @@ import torch
 from pipeline.config import TrainConfig, rescheduled, to_dict
 from pipeline.job.layout import SELECTION_NAME
 from pipeline.medium.estimate import MediumEstimate
-from pipeline.scene.types import Scene, View, view_ranges
+from pipeline.scene.records import Scene, View, view_ranges
 
 log = logging.getLogger(__name__)
 

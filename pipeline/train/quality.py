@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from pipeline.scene.types import Scene, Sightings, View, ray_length_factor
+from pipeline.scene.records import Scene, Sightings, View, ray_length_factor
 
 COVER_ALPHA = 0.5  # a pixel is covered when the Gaussians' alpha is at least this
 POINT_DEPTH_TOL = 0.25  # a point's pixel renders its surface when the rendered distance is within 25 % of it

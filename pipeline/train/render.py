@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from pipeline.medium.model import Medium
-from pipeline.scene.types import View, ray_length_factor
+from pipeline.scene.records import View, ray_length_factor
 from pipeline.splat.gaussians import activate, num_sh_bases, sh_degree_of
 
 

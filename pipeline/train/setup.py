@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pipeline.config import TrainConfig
-from pipeline.scene.types import Scene, View, scaled_view
+from pipeline.scene.records import Scene, View, scaled_view
 from pipeline.splat.gaussians import GAUSSIAN_KEYS, init_from_points, init_random
 
 log = logging.getLogger(__name__)

@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from pipeline.config import TrainConfig, from_dict, to_dict
 from pipeline.job.layout import CHECKPOINT_NAME
 from pipeline.medium.term import MediumTerm
-from pipeline.scene.types import Scene, View
+from pipeline.scene.records import Scene, View
 from pipeline.splat.densify import Densifier
 from pipeline.splat.gaussians import GAUSSIAN_KEYS
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint

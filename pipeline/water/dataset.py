@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from pipeline.config import SynthConfig
-from pipeline.scene.types import ray_length_factor
+from pipeline.scene.records import ray_length_factor
 from pipeline.synth.procedural import make_camera, synth_views
 from pipeline.synth.water import underwater_image
 from pipeline.water.controller import WATER_TYPES

@@ -11,7 +11,7 @@ import pytest
 from pipeline.config import SynthConfig
 from pipeline.evaluate.evaluation import json_safe, speed_vs_error
 from pipeline.scene.align import fit_similarity, umeyama, view_in_estimated_frame
-from pipeline.scene.types import Camera, Scene, View, scaled_view
+from pipeline.scene.records import Camera, Scene, View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, GroundTruthError, find_ground_truth, load_ground_truth
 from pipeline.synth.procedural import generate_scene
 from pipeline.train.hooks import curve_every, curve_subset

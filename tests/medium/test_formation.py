@@ -15,7 +15,7 @@ from pipeline.medium.formation import (
     transmission,
 )
 from pipeline.medium.model import Medium
-from pipeline.scene.types import ray_length_factor
+from pipeline.scene.records import ray_length_factor
 from pipeline.synth.procedural import make_camera, synth_views
 from pipeline.synth.water import WATER_PRESETS, underwater_image
 

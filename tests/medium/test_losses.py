@@ -7,7 +7,7 @@ import torch
 
 from pipeline.config import SynthConfig
 from pipeline.medium import losses as L
-from pipeline.scene.types import ray_length_factor
+from pipeline.scene.records import ray_length_factor
 from pipeline.synth.procedural import make_camera, synth_views
 from pipeline.synth.water import WATER_PRESETS
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.scene.align import align_to_reference, rotation_angle_deg, umeyama
-from pipeline.scene.types import Camera, Scene, View
+from pipeline.scene.records import Camera, Scene, View
 
 CAM = Camera(8, 6, 5.0, 5.0, 4.0, 3.0)
 

@@ -18,7 +18,7 @@ from pipeline.scene.colmap import (
     write_colmap_binary,
     write_colmap_text,
 )
-from pipeline.scene.types import Camera, Scene, View
+from pipeline.scene.records import Camera, Scene, View
 
 RUIE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "ruie-A188-A206"
 

@@ -17,7 +17,7 @@ from pipeline.scene.images import (
     resize_area_to,
     write_image,
 )
-from pipeline.scene.types import Camera
+from pipeline.scene.records import Camera
 
 REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
 

@@ -18,7 +18,7 @@ from pipeline.scene.loader import (
     load_scene,
     load_view_image,
 )
-from pipeline.scene.types import Camera, Scene, View
+from pipeline.scene.records import Camera, Scene, View
 
 RUIE = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "ruie-A188-A206"
 

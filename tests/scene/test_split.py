@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.scene.records import Camera, View
 from pipeline.scene.split import split_views
-from pipeline.scene.types import Camera, View
 
 
 def _views(names: list[str]) -> list[View]:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.config import SynthConfig
-from pipeline.scene.types import ray_length_factor
+from pipeline.scene.records import ray_length_factor
 from pipeline.synth.procedural import generate_scene, make_camera, synth_views
 from pipeline.synth.water import WATER_PRESETS
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.scene.types import ray_length_factor
+from pipeline.scene.records import ray_length_factor
 from pipeline.synth.ground_truth import is_generated_scene, load_ground_truth
 from pipeline.synth.photo import (
     PHOTO_WATER_PRESETS,

@@ -15,7 +15,7 @@ import torch
 from pipeline.config import MediumConfig, SynthConfig, TrainConfig, train_preset
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
-from pipeline.scene.types import ray_length_factor
+from pipeline.scene.records import ray_length_factor
 from pipeline.synth.procedural import generate_scene
 from pipeline.synth.water import WATER_PRESETS
 from pipeline.train.resolve import medium_with_water

@@ -12,8 +12,8 @@ from pipeline.config import SynthConfig
 from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions, StageContext
 from pipeline.scene.loader import load_images, load_scene
+from pipeline.scene.records import Camera, Scene, View
 from pipeline.scene.split import split_views
-from pipeline.scene.types import Camera, Scene, View
 from pipeline.synth.procedural import generate_scene
 from pipeline.train.budget import MIN_GAUSSIANS, scene_budget
 from pipeline.train.probe import ModeScore, ProbeConfig, decide, holdout_split

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.scene.types import Camera, Scene, Sightings, View
+from pipeline.scene.records import Camera, Scene, Sightings, View
 from pipeline.train.quality import (
     COLLAPSE_POINT_COVERAGE,
     collapse_warnings,

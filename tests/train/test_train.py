@@ -16,7 +16,7 @@ from pipeline.config import (
     to_dict,
     train_preset,
 )
-from pipeline.scene.types import Camera, Scene, View
+from pipeline.scene.records import Camera, Scene, View
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.train.image_losses import ssim
 from pipeline.train.setup import active_sh_degree, initial_gaussians, means_lr, prepare_images, scene_extent

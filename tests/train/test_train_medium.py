@@ -10,7 +10,7 @@ import torch
 from pipeline.config import DensifyConfig, MediumConfig, SynthConfig, TrainConfig
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
-from pipeline.scene.types import Scene
+from pipeline.scene.records import Scene
 from pipeline.synth.procedural import generate_scene
 from pipeline.train.checkpoint import load_checkpoint
 from pipeline.train.trainer import CHECKPOINT_NAME, Trainer, TrainingCancelled, train

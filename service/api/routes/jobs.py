@@ -8,7 +8,7 @@ from fastapi import APIRouter, Header, Query, Request, Response
 
 from service.api.deps import JobDep, JobsDep, OwnerDep, ServicesDep
 from service.api.errors import api_error
-from service.api.schemas.requests import JobCreateOptions
+from service.api.schemas.inputs import JobCreateOptions
 from service.api.schemas.responses import ErrorOut, JobList, JobOut, LogOut
 from service.dispatch import DispatchError
 from service.intake import UploadRequest

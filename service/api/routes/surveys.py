@@ -6,7 +6,7 @@ from fastapi import APIRouter, Response
 
 from service.api.deps import OwnerDep, ServicesDep, SurveysDep
 from service.api.errors import api_error
-from service.api.schemas.requests import SurveyCreate
+from service.api.schemas.inputs import SurveyCreate
 from service.api.schemas.responses import ErrorOut, ScanQueued, SubmittedSetOut, SurveyList, SurveyOut
 from service.dispatch import DispatchError
 from service.surveys.registry import Survey, SurveyError, SurveyNotFound, SurveyRegistry
