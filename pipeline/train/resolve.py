@@ -5,8 +5,8 @@ Everything that decides how a job trains meets in :func:`resolve_train_config`: 
 degree it sized to the scene), the seed, the downscale for ``max_width``, the speed-vs-error curve's cadence
 and the classifier's water decision. The result is frozen; the train stage saves it as the job's
 ``train/config.json``, and the mode probe (``pipeline.train.probe.probe_config``) and the collapse guard's retry
-(``pipeline.train.guard.safer_config``) derive theirs from it with ``dataclasses.replace``. Before, five
-places assembled or patched the config in place, and two of them disagreed.
+(``pipeline.train.guard.safer_config``) derive theirs from it with ``dataclasses.replace``. (Before, five
+places assembled the config or patched it in place, and the probe applied the water decision a second time.)
 """
 
 from __future__ import annotations
