@@ -8,7 +8,7 @@ from dataclasses import FrozenInstanceError, replace
 
 import pytest
 
-from pipeline.config import MediumConfig, TrainConfig, from_dict, to_dict
+from pipeline.config import MediumConfig, TrainConfig, from_dict, to_dict, train_preset
 from pipeline.job.options import JobOptions
 from pipeline.train.guard import safer_config
 from pipeline.train.probe import ProbeConfig, probe_config
@@ -72,3 +72,25 @@ def test_the_probe_and_the_retry_derive_from_the_resolved_config():
     safe, _ = safer_config(base)
     assert safe.medium.start_fraction == 0.5 and safe.densify.reset_every == base.iterations + 1
     assert replace(safe, densify=base.densify, medium=base.medium) == base
+
+
+@pytest.mark.parametrize("preset", ["fast", "balanced", "paper"])
+def test_iterations_change_the_runs_length_not_the_preset(preset):
+    """``--iterations`` used to replace the preset: ``--preset fast --iterations 3000`` trained with a 300k
+    Gaussian cap where ``--preset fast`` has 100k (and paper's none became 300k). It keeps the preset's cap and
+    scales its checkpoint cadence with the run."""
+    p = train_preset(preset)
+    opts = JobOptions(preset=preset, mode="dualphys")
+    assert resolve_train_config(replace(opts, iterations=p.iterations), 240, None, None) == \
+        resolve_train_config(opts, 240, None, None)
+    short = resolve_train_config(replace(opts, iterations=1500), 240, None, None)
+    assert short.densify.max_gaussians == p.densify.max_gaussians
+    assert short.checkpoint_every == round(p.checkpoint_every * 1500 / p.iterations)
+    # the schedule is the run's: the 30k recipe compressed to 1500 iterations
+    assert (short.iterations, short.sh_degree_interval, short.densify.refine_stop) == (1500, 50, 750)
+
+
+def test_the_demo_keeps_the_fast_presets_cap():
+    """``dualphys demo`` runs ``JobOptions(mode="dualphys", iterations=1500)`` with the default preset (fast)."""
+    cfg = resolve_train_config(JobOptions(mode="dualphys", iterations=1500), 240, None, None)
+    assert (cfg.densify.max_gaussians, cfg.checkpoint_every) == (100_000, 250)
