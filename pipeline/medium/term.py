@@ -24,6 +24,7 @@ from pipeline.medium.losses import LossWeights, loss_terms
 from pipeline.medium.model import Medium, MediumOutput
 from pipeline.scene.records import Scene, View, ray_length_factor, view_ranges
 from pipeline.train.quality import view_point_ranges
+from pipeline.water.controller import medium_start_iteration
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +184,7 @@ class MediumTerm:
         self.range_maps = [m.range for m in maps]  # per view [1, 1, h, w]
         self.cover_maps = [cover_range_map(m, s[1]) for m, s in zip(maps, self.surface)]  # per view [1, 1, h, w]
         self.transmission = view_transmission(scene, views, init["init_beta"])  # per view: mean A at its range
-        self.start = int(round(cfg.start_fraction * total_iterations))
+        self.start = medium_start_iteration(total_iterations, cfg.start_fraction)  # the controller's rule
         # Short runs scale the schedule: the paper's rates are for ~20k medium iterations.
         boost = max(1.0, cfg.lr_reference_iterations / max(1, total_iterations - self.start))
         m = self.medium

@@ -106,7 +106,10 @@ def controller_settings(water_type: str, cfg: ControllerConfig | None = None) ->
 
 
 def medium_start_iteration(total_iterations: int, fraction: float = PAPER_MEDIUM_START / PAPER_ITERATIONS) -> int:
-    """Iteration at which the medium switches on: round(total · fraction) (30,000 → 10,000; 3,000 → 1,000).
+    """Iteration at which the medium switches on: round(total · fraction), halves up (30,000 → 10,000;
+    3,000 → 1,000). The one rule: the training's medium term (``pipeline.medium.term``) uses it too. It used
+    Python's round, so the two disagreed by one iteration where total · fraction is an even number and a half
+    (the collapse guard's retry of a 1,001-iteration run, at 0.5: the medium started after 500, this said 501).
 
     >>> medium_start_iteration(30_000), medium_start_iteration(3_000), medium_start_iteration(100)
     (10000, 1000, 33)

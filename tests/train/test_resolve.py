@@ -1,5 +1,5 @@
 """A job's TrainConfig is resolved in one place (pipeline.train.resolve), frozen, and everything else derives
-from it: the mode probe's runs, the collapse guard's retry."""
+from it: the mode probe's runs, the collapse guard's retry. The medium's start iteration has one rule."""
 
 from __future__ import annotations
 
@@ -8,12 +8,15 @@ from dataclasses import FrozenInstanceError, replace
 
 import pytest
 
-from pipeline.config import MediumConfig, TrainConfig, from_dict, to_dict, train_preset
+from pipeline.config import MediumConfig, SynthConfig, TrainConfig, from_dict, to_dict, train_preset
 from pipeline.job.options import JobOptions
+from pipeline.scene.loader import load_images, load_scene
+from pipeline.synth.procedural import generate_scene
 from pipeline.train.guard import safer_config
 from pipeline.train.probe import ProbeConfig, probe_config
 from pipeline.train.resolve import medium_with_water, resolve_train_config
-from pipeline.water.controller import controller_settings
+from pipeline.train.trainer import Trainer
+from pipeline.water.controller import controller_settings, medium_start_iteration
 from pipeline.water.decision import WaterDecision
 
 
@@ -94,3 +97,28 @@ def test_the_demo_keeps_the_fast_presets_cap():
     """``dualphys demo`` runs ``JobOptions(mode="dualphys", iterations=1500)`` with the default preset (fast)."""
     cfg = resolve_train_config(JobOptions(mode="dualphys", iterations=1500), 240, None, None)
     assert (cfg.densify.max_gaussians, cfg.checkpoint_every) == (100_000, 250)
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    root = generate_scene(SynthConfig(views=3, width=32, height=24, preset="medium", seed=0, n_points=300,
+                                      supersample=1), tmp_path_factory.mktemp("tiny"))
+    scene = load_scene(root)
+    return scene, load_images(scene)
+
+
+@pytest.mark.parametrize(("iterations", "fraction"), [(1001, 0.5), (5, 0.5), (10, 0.25), (1500, 1 / 3)])
+def test_the_medium_starts_where_the_controller_says(tiny_scene, iterations, fraction):
+    """The medium term rounded total x fraction with Python's round (halves to even), the controller's
+    ``medium_start_iteration`` halves up: where the product is an even number and a half (the collapse guard's
+    retry of a 1001-iteration run starts the medium at 0.5) they were one iteration apart. Now there is one
+    rule. (1500 x 1/3 is the demo: no half, never in question.)"""
+    scene, images = tiny_scene
+    cfg = TrainConfig(mode="homogeneous", iterations=iterations, backend="cpu", log_every=0,
+                      medium=MediumConfig(start_fraction=fraction))
+    start = medium_start_iteration(iterations, fraction)
+    assert Trainer(scene, images, cfg).medium.start == start
+    settings = replace(controller_settings("medium"), medium_start_fraction=fraction)
+    assert settings.medium_start(iterations) == start
+    if iterations * fraction % 1 == 0.5:  # where the two rules disagreed
+        assert int(round(iterations * fraction)) == start - 1
