@@ -70,8 +70,6 @@ def from_dict(cls: type[C], data: dict[str, Any]) -> C:
     return cls(**data)
 
 
-__all__ = ["SynthConfig", "SfmConfig", "to_dict", "from_dict", "field"]
-
 
 @dataclass(frozen=True)
 class DensifyConfig:
@@ -233,6 +231,5 @@ def train_preset(name: str) -> TrainConfig:
         raise ValueError(f"unknown training preset {name!r}; choose from {sorted(TRAIN_PRESETS)}")
     return from_dict(TrainConfig, to_dict(TRAIN_PRESETS[name]))
 
-__all__ += ["DensifyConfig", "TrainConfig", "TRAIN_PRESETS", "train_preset", "scaled_train_config", "rescheduled"]
-
-__all__ += ["MediumConfig"]
+__all__ = ["DensifyConfig", "MediumConfig", "SfmConfig", "SynthConfig", "TRAIN_PRESETS", "TrainConfig", "from_dict",
+           "rescheduled", "scaled_train_config", "to_dict", "train_preset"]

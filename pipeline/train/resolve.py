@@ -27,10 +27,10 @@ PROBE_BASE_MODE = "dualphys"
 
 def medium_with_water(medium: MediumConfig, decision: Mapping[str, Any]) -> MediumConfig:
     """``medium`` with the adaptive controller's settings (paper §5) from a water decision
-    (:meth:`pipeline.water.decision.WaterDecision.to_dict`, the job's water.json). The one place the decision's
-    keys become :class:`~pipeline.config.MediumConfig` fields. Unchanged when ``water_adaptation`` is off (the
-    ablation's rows without WAT); a decision without ``init_optical_depth`` (older water.json) keeps the
-    medium's starting optical depth."""
+    (:meth:`pipeline.water.decision.WaterDecision.to_dict`, the classify stage's output). The one place the
+    decision's keys become :class:`~pipeline.config.MediumConfig` fields. Unchanged when ``water_adaptation`` is
+    off (the ablation's rows without WAT); a decision without ``init_optical_depth`` (written by older versions)
+    keeps the medium's starting optical depth."""
     if not medium.water_adaptation:
         return medium
     return replace(medium, lr_attenuation=decision["lr_attenuation"], lr_scattering=decision["lr_scattering"],
