@@ -7,22 +7,9 @@ from dataclasses import replace
 import pytest
 import torch
 
-from pipeline.config import DensifyConfig, MediumConfig, SynthConfig, TrainConfig
-from pipeline.scene.images import read_image
-from pipeline.scene.loader import load_scene
-from pipeline.scene.records import Scene
-from pipeline.synth.procedural import generate_scene
+from pipeline.config import DensifyConfig, MediumConfig, TrainConfig
 from pipeline.train.checkpoint import load_checkpoint
 from pipeline.train.trainer import CHECKPOINT_NAME, Trainer, TrainingCancelled, train
-
-
-@pytest.fixture(scope="module")
-def medium_scene(tmp_path_factory):
-    root = generate_scene(SynthConfig(views=8, width=96, height=72, preset="medium", seed=2),
-                          tmp_path_factory.mktemp("m"))
-    scene = load_scene(root)
-    return Scene(scene.views, scene.points, scene.colors, root), [read_image(root / "images" / v.name)
-                                                                   for v in scene.views]
 
 
 def _cfg(mode: str, iterations: int = 60) -> TrainConfig:
@@ -32,8 +19,8 @@ def _cfg(mode: str, iterations: int = 60) -> TrainConfig:
 
 
 @pytest.mark.parametrize("mode", ["homogeneous", "dualphys"])
-def test_medium_switches_on_and_learns(medium_scene, mode):
-    scene, images = medium_scene
+def test_medium_switches_on_and_learns(small_medium_scene, mode):
+    scene, images = small_medium_scene
     tr = Trainer(scene, images, _cfg(mode))
     assert tr.medium is not None and tr.max_sh_degree == 1
     assert torch.all(tr.background == 0)  # J is premultiplied; the water fills uncovered pixels
@@ -54,8 +41,8 @@ def test_medium_switches_on_and_learns(medium_scene, mode):
 
 
 @pytest.mark.slow
-def test_dualphys_resume_matches_straight_run(medium_scene, tmp_path):
-    scene, images = medium_scene
+def test_dualphys_resume_matches_straight_run(small_medium_scene, tmp_path):
+    scene, images = small_medium_scene
     cfg = _cfg("dualphys", 60)
     straight = train(scene, images, cfg)
     calls = iter(range(10_000))
@@ -70,34 +57,14 @@ def test_dualphys_resume_matches_straight_run(medium_scene, tmp_path):
     assert resumed.metrics["loss"] == pytest.approx(straight.metrics["loss"], rel=1e-5)
 
 
-@pytest.mark.parametrize("mode", ["3dgs", "dualphys"])
-def test_export_writes_every_view_and_matches_the_trainer(medium_scene, tmp_path, mode):
-    from pipeline.export.views import export_views
-
-    scene, images = medium_scene
-    tr = Trainer(scene, images, _cfg(mode, 40))
-    tr.run([])
-    tr.save(tmp_path / "ckpt.pt")
-    counts = export_views(load_checkpoint(tmp_path / "ckpt.pt"), scene.views, tmp_path / "out")
-    assert counts["views"] == len(scene.views)
-    folders = {"restored", "with_water", "depth"} | ({"attenuation", "backscatter"} if mode == "dualphys" else set())
-    assert set(counts["folders"]) == folders and {p.name for p in (tmp_path / "out").iterdir()} == folders
-    for v in scene.views:
-        stem = v.name.rsplit(".", 1)[0]
-        I = read_image(tmp_path / "out" / "with_water" / f"{stem}.png")  # noqa: E741
-        expect = tr.predict(v).numpy()
-        assert abs(I - expect).max() <= 0.5 / 255 + 1e-6  # the same model, only 8-bit rounding between them
-        assert (tmp_path / "out" / "depth" / f"{stem}.npy").is_file()
-
-
 @pytest.mark.parametrize("preset", ["fast", "balanced", "paper"])
-def test_no_opacity_reset_near_or_after_the_medium_start(medium_scene, preset):
+def test_no_opacity_reset_near_or_after_the_medium_start(small_medium_scene, preset):
     """The fast preset's reset fell on the iteration the medium switched on, and the veil then took the scene
     (docs/DECISIONS.md, "The water must not eat the scene"): medium modes stop resetting two refinements
     before the medium starts; 3dgs keeps the preset's resets."""
     from pipeline.config import train_preset
 
-    scene, images = medium_scene
+    scene, images = small_medium_scene
     cfg = replace(train_preset(preset), mode="dualphys", backend="cpu")
     tr = Trainer(scene, images, cfg)
     until = tr.densifier.strategy.reset_until
@@ -108,13 +75,13 @@ def test_no_opacity_reset_near_or_after_the_medium_start(medium_scene, preset):
 
 
 @pytest.mark.parametrize("preset", ["fast", "paper"])
-def test_medium_modes_refine_while_the_medium_settles(medium_scene, preset):
+def test_medium_modes_refine_while_the_medium_settles(small_medium_scene, preset):
     """Growth stopped 500 iterations after the medium switched on (fast) and the far seabed of oblique views
     was given up as water with no way to grow back (docs/DECISIONS.md, fix 6): medium modes refine until
     ``medium_refine_factor`` x refine_stop, 3dgs keeps the preset's schedule."""
     from pipeline.config import train_preset
 
-    scene, images = medium_scene
+    scene, images = small_medium_scene
     cfg = replace(train_preset(preset), mode="homogeneous", backend="cpu")
     stop = Trainer(scene, images, cfg).densifier.strategy.refine_stop_iter
     assert stop == round(cfg.densify.refine_stop * cfg.densify.medium_refine_factor) > cfg.densify.refine_stop
