@@ -13,6 +13,9 @@ Two choices keep this reference and the compiled kernel in exact agreement on th
   the same operation order as the kernel and the threshold rounded from float64: identical inputs give
   identical decisions, so no pixel flips a Gaussian in or out between backends.
 - alpha is formed in float32 (0.99 clamps to float32(0.99) in both); the running log-transmittance is float64.
+
+``composite_loop`` is the same compositing written as the obvious loop over Gaussians (float32 transmittance, as
+the kernel keeps it): the twin of the cpu kernels in their per-kernel tests (tests/splat/test_cpu_kernels.py).
 """
 
 from __future__ import annotations
@@ -134,6 +137,82 @@ def composite(
     if backgrounds is not None:
         out = out + t_final * backgrounds[:, None, None, :]
     return out, 1.0 - t_final
+
+
+def composite_loop(
+    means2d: Tensor,  # [C, N, 2]
+    conics: Tensor,  # [C, N, 3]
+    opacities: Tensor,  # [N], or [C, N] (one leaf per camera, for per-camera gradients)
+    features: Tensor,  # [C, N, F]
+    radii: Tensor,  # [C, N, 2] int32
+    depth_keys: Tensor,  # [C, N] float64
+    width: int,
+    height: int,
+    backgrounds: Tensor | None = None,  # [C, F]
+    absgrad: bool = False,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``composite`` as the obvious loop: one Gaussian at a time, front to back, over the whole image.
+
+    The twin of the cpu backend's compositing kernels in their per-kernel tests (tens of Gaussians, tiny images;
+    far too slow to render with). Same rules and pixel box as ``composite``, but the transmittance is the float32
+    running product T <- T (1 - alpha) that the kernel (and 3DGS's CUDA kernel) keep, where ``composite`` sums
+    log(1 - alpha) in float64: so the T_MIN stops fall on exactly the kernel's pairs.
+
+    Returns features [C, H, W, F] (plus T_final * background), T_final [C, H, W] and ``composited`` [C, N, H, W]
+    bool (no grad): where each Gaussian was composited (the Gaussian that stops a pixel is not). With ``absgrad``,
+    backward sets ``means2d.absgrad`` [C, N, 2], the sum over pixels of |dL/dmeans2d| at each pixel.
+    """
+    C, N, F = features.shape
+    dtype, dev = means2d.dtype, means2d.device
+    op = opacities.expand(C, N)
+    thr = alpha_thresholds(op)
+    px = torch.arange(width, dtype=dtype, device=dev) + 0.5  # pixel centres
+    py = (torch.arange(height, dtype=dtype, device=dev) + 0.5)[:, None]
+    xs, ys = torch.arange(width, device=dev)[None, :], torch.arange(height, device=dev)[:, None]
+    composited = torch.zeros(C, N, height, width, dtype=torch.bool, device=dev)
+    if absgrad and means2d.requires_grad:
+        means2d.absgrad = torch.zeros_like(means2d, requires_grad=False)
+    images, t_finals = [], []
+    for c in range(C):
+        T = torch.ones(height, width, dtype=dtype, device=dev)
+        live = torch.ones(height, width, dtype=torch.bool, device=dev)
+        acc = torch.zeros(height, width, F, dtype=dtype, device=dev)
+        visible = torch.nonzero((radii[c] > 0).any(-1)).squeeze(1)
+        for n in visible[torch.sort(depth_keys[c, visible], stable=True).indices].tolist():
+            m = means2d[c, n].detach().to(torch.float64)
+            r = radii[c, n].to(torch.float64)
+            in_box = (
+                (xs >= torch.ceil(m[0] - r[0] - 0.5)) & (xs <= torch.floor(m[0] + r[0] - 0.5))
+                & (ys >= torch.ceil(m[1] - r[1] - 0.5)) & (ys <= torch.floor(m[1] + r[1] - 0.5))
+            )  # fmt: skip
+            mx = means2d[c, n, 0].expand(height, width)  # one element per pixel, for the absgrad hook
+            my = means2d[c, n, 1].expand(height, width)
+            if absgrad and mx.requires_grad:
+                mx.register_hook(_pixel_absgrad_hook(means2d, c, n, 0))
+                my.register_hook(_pixel_absgrad_hook(means2d, c, n, 1))
+            sigma = pair_sigma(mx - px, my - py, conics[c, n, 0], conics[c, n, 1], conics[c, n, 2])
+            alpha = torch.clamp(op[c, n] * torch.exp(-sigma), max=ALPHA_MAX)
+            with torch.no_grad():
+                eligible = in_box & live & (sigma <= thr[c, n])  # alpha >= 1/255, as composite decides it
+                t_next = T * (1.0 - alpha)
+                take = eligible & (t_next >= T_MIN)
+                live &= ~(eligible & (t_next < T_MIN))
+            composited[c, n] = take
+            weight = torch.where(take, alpha * T, 0.0)
+            acc = acc + weight[..., None] * features[c, n]
+            T = torch.where(take, T * (1.0 - alpha), T)
+        if backgrounds is not None:
+            acc = acc + T[..., None] * backgrounds[c]
+        images.append(acc)
+        t_finals.append(T)
+    return torch.stack(images), torch.stack(t_finals), composited
+
+
+def _pixel_absgrad_hook(means2d: Tensor, c: int, n: int, axis: int):
+    def hook(grad: Tensor) -> None:  # grad [H, W]: this Gaussian's dL/dmeans2d[axis] at each pixel
+        means2d.absgrad[c, n, axis] += grad.abs().sum()
+
+    return hook
 
 
 def render(
