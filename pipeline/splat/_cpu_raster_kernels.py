@@ -111,6 +111,8 @@ def _row_tiles(mx, my, b, ok, det, inv_a, k, v_lim, vs, ty, tx0, tx1, width, hei
     margin = 1e-3 + 1e-5 * (abs(u_lo) + abs(u_hi))
     x_lo = max(int(np.ceil(mx + u_lo - margin - 0.5)), 0)
     x_hi = min(int(np.floor(mx + u_hi + margin - 0.5)), width - 1)
+    if x_hi < x_lo:  # between two pixel-centre columns, or right of the last one: no pixel of the row
+        return tx0, tx0 - 1
     return max(x_lo // TILE, tx0), min(x_hi // TILE, tx1)
 
 

@@ -7,9 +7,9 @@ gets the twin's saved state, not ``raster_fwd``'s), so a failure names the step:
 - ``bin_and_pack``: the visible items in depth order; per tile, its (tile, Gaussian) pairs in depth order (ties
   in index order) against a numpy twin of the kernel's tile rule: the tiles of each Gaussian's pixel box (radii
   made by project.py's rule) with a pixel-centre column that the ellipse sigma <= log(255 o) meets within the
-  tile's pixel-centre rows. Every twin pair must be there (so no pixel loses a Gaussian), no other pair but
-  within the kernel's 1e-3 px margin, and the extra pairs of the xfail test; the packed parameter rows bit for
-  bit; the same for 1, 3 and 64 chunks of the kernel's parallel counting sort.
+  tile's pixel-centre rows. Every twin pair must be there (so no pixel loses a Gaussian), and no other pair but
+  within the kernel's 1e-3 px margin; the packed parameter rows bit for bit; the same for 1, 3 and 64 chunks of
+  the kernel's parallel counting sort.
 - ``raster_fwd``: image (with background), final transmittance, the per-pair masks of composited pixels and each
   tile's used pair range against ``_torch_ref.composite_loop`` (itself checked against ``composite``).
 - ``raster_bwd`` + ``reduce_items``: gradients of means2d, conics, per-camera opacities, features and the
@@ -267,14 +267,6 @@ def _extra_pairs(s: Splats, twin: Bins, got: dict[int, list[int]]) -> list[tuple
     ]
 
 
-def _kept_by_tile_rounding(s: Splats, t: int, it: int) -> bool:
-    """The extra pairs ``bin_and_pack`` keeps today (see the xfail test): the ellipse passes between two
-    pixel-centre columns of the tile, or (last, partial tile column) right of the image's last pixel centre."""
-    ty, tx = divmod(t % (NTX * NTY), NTX)
-    last = tx * TILE + TILE - 0.5 if tx < NTX - 1 else W + 100.0
-    return _reaches(s, it, tx, ty, tx * TILE + 0.5, last, MARGIN_PX)
-
-
 @pytest.mark.parametrize("seed, n_chunks", [(0, 1), (1, 3), (2, 64)])
 def test_bin_and_pack_matches_twin(rk, seed, n_chunks):
     s = _splats(seed)
@@ -289,8 +281,8 @@ def test_bin_and_pack_matches_twin(rk, seed, n_chunks):
         missing = set(twin.columns.get(t, [])) - set(lst)
         assert not missing, f"tile {t}: pairs missing {sorted(missing)}"
         assert set(twin.pixels.get(t, [])) <= set(lst)  # (implied) no pixel loses a Gaussian
-    # beyond the 1e-3 px margin, no pair the ellipse misses but for the known tile-rounding ones
-    extra = [(t, it) for t, it in _extra_pairs(s, twin, got) if not _kept_by_tile_rounding(s, t, it)]
+    # beyond the 1e-3 px margin, no pair the ellipse misses
+    extra = _extra_pairs(s, twin, got)
     assert not extra, f"(tile, item) pairs kept although the ellipse misses the tile: {extra}"
     assert np.array_equal(rows, _pack(s, items.tolist(), got)[0])
     # the scene exercises what the test is about
@@ -304,15 +296,11 @@ def test_bin_and_pack_matches_twin(rk, seed, n_chunks):
     assert culled.any() and not set(np.nonzero(culled.reshape(-1).numpy())[0]) & set(twin.items)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="bin_and_pack keeps a tile when the ellipse passes between two of its pixel-centre columns, or right "
-    "of the image's last pixel centre in the last, partial tile column: _row_tiles clamps x_hi to the image but "
-    "not x_lo and tests its column span for emptiness only after dividing by the tile size. Harmless (such a "
-    "pair composites nothing, only costs a visit); `if x_hi < x_lo: return tx0, tx0 - 1` would fix it",
-)
-def test_bin_and_pack_drops_every_tile_the_ellipse_misses(rk):
-    s = _splats(1)  # five such pairs, all in the last tile column
+def test_bin_and_pack_drops_a_tile_the_ellipse_misses_between_columns(rk):
+    """Seed 1 has five pairs whose ellipse passes between two pixel-centre columns of a tile, or right of the
+    image's last pixel centre in the last, partial tile column; the kernel kept them while it clamped x_hi to the
+    image but not x_lo and tested the column span only after dividing by the tile size."""
+    s = _splats(1)
     _, offsets, items, pair_item = _bin(rk, s)
     assert not _extra_pairs(s, _twin_bins(s), _kernel_tiles(offsets, items, pair_item))
 
