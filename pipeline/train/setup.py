@@ -31,10 +31,44 @@ def scene_extent(views: Sequence[View]) -> float:
     return radius if radius > 1e-6 else 1.0
 
 
+def shrink_image(img: ImageLike, height: int, width: int, device: torch.device | None = None) -> Tensor:
+    """``img`` [H, W, 3] area-averaged to [height, width, 3] (float32, on ``device``); the one downscale of
+    training targets, whether the job loads them at the training size or the trainer shrinks them."""
+    t = torch.as_tensor(img, dtype=torch.float32)
+    if device is not None:
+        t = t.to(device)
+    if tuple(t.shape[:2]) == (height, width):
+        return t
+    t = F.interpolate(t.permute(2, 0, 1)[None], size=(height, width), mode="area")[0]
+    return t.permute(1, 2, 0).contiguous()
+
+
+def load_training_images(views: Sequence[View], downscale: int, colour_space: str = "srgb") -> list[Tensor]:
+    """Each view's image file read one at a time and shrunk at once to the training size (``downscale``), so a
+    survey of full-resolution photos never sits in memory whole (a 27 MP frame is 324 MB as float32): peak is
+    one full-size image plus the training-size set. Exactly what :func:`prepare_images` makes of the full-size
+    images. ``colour_space`` "linear": each photo decoded to linear light (sRGB EOTF) before it is averaged down
+    (averaging is only physical in linear light). [h, w, 3] float32 each."""
+    from pipeline.scene.colour import srgb_to_linear
+    from pipeline.scene.loader import load_view_image
+
+    if colour_space not in ("srgb", "linear"):
+        raise ValueError(f"unknown colour space {colour_space!r}")
+    out = []
+    for view in views:
+        cam = scaled_view(view, downscale).camera if downscale > 1 else view.camera
+        img = load_view_image(view)
+        if colour_space == "linear":
+            img = srgb_to_linear(img).astype(np.float32)
+        out.append(shrink_image(img, cam.height, cam.width))
+    return out
+
+
 def prepare_images(
     views: Sequence[View], images: Sequence[ImageLike], downscale: int, device: torch.device
 ) -> tuple[list[View], list[Tensor]]:
     """Check images against their cameras and shrink both by ``downscale`` (area averaging).
+    Images may also come already at the shrunk size (:func:`load_training_images`).
     Returns the (rescaled) views and float32 targets [H, W, 3] on ``device``."""
     if len(views) != len(images):
         raise ValueError(f"{len(views)} views but {len(images)} images")
@@ -42,17 +76,13 @@ def prepare_images(
         raise ValueError(f"downscale must be >= 1, got {downscale}")
     out_views, targets = [], []
     for view, img in zip(views, images, strict=True):
-        t = torch.as_tensor(img, dtype=torch.float32).to(device)
-        cam = view.camera
-        if t.shape != (cam.height, cam.width, 3):
-            raise ValueError(f"image of {view.name!r} is {tuple(t.shape)}, camera says ({cam.height}, {cam.width}, 3)")
-        if downscale > 1:
-            view = scaled_view(view, downscale)
-            cam = view.camera
-            t = F.interpolate(t.permute(2, 0, 1)[None], size=(cam.height, cam.width), mode="area")[0]
-            t = t.permute(1, 2, 0).contiguous()
-        out_views.append(view)
-        targets.append(t)
+        shape = tuple(np.shape(img))
+        small = scaled_view(view, downscale) if downscale > 1 else view
+        full = (view.camera.height, view.camera.width, 3)
+        if shape not in (full, (small.camera.height, small.camera.width, 3)):
+            raise ValueError(f"image of {view.name!r} is {shape}, camera says {full[:2] + (3,)}")
+        out_views.append(small)
+        targets.append(shrink_image(img, small.camera.height, small.camera.width, device))
     return out_views, targets
 
 

@@ -17,30 +17,34 @@ if TYPE_CHECKING:
 def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.config import to_dict
     from pipeline.job.markers import atomic_write_json
-    from pipeline.scene.loader import load_images, load_scene
+    from pipeline.scene.loader import load_scene
     from pipeline.scene.split import split_views
     from pipeline.train.guard import train_checked
     from pipeline.train.resolve import resolve_train_config
+    from pipeline.train.setup import load_training_images
     from pipeline.train.trainer import TrainingCancelled
 
     layout = JobLayout(job)
     scene = load_scene(layout.scene)
     train_views, test_views = split_views(scene.views)
     train_scene = scene.subset(train_views)
-    images = load_images(train_scene)
     # the classify stage's decision; in a folder from before its rename, the legacy file (JobLayout.legacy_classify)
     water = json.loads(found.read_text()) if (found := layout.classify_written) is not None else None
+    # the images at the training size, read one at a time (the downscale follows the width and max_width only)
+    down = resolve_train_config(opts, scene.views[0].camera.width, water, None).downscale
+    images = load_training_images(train_scene.views, down, opts.colour_space)
     selection = None
     if opts.mode == "auto":  # the probe starts from the config resolved before its choice, at its views' width
         base = resolve_train_config(opts, train_scene.views[0].camera.width, water, None)
         selection = select_mode(job, base, train_scene, images, water, ctx)
     cfg = resolve_train_config(opts, scene.views[0].camera.width, water, selection)
+    assert cfg.downscale == down, (cfg.downscale, down)
     atomic_write_json(layout.train_config, to_dict(cfg))
     start = PROBE_SHARE if selection is not None else 0.0
     from pipeline.train.hooks import curve_subset
 
     curve_views = [test_views[i] for i in curve_subset(len(test_views))]  # a few views keep the curve cheap
-    test_images = load_images(type(scene)(curve_views, root=scene.root)) if curve_views else []
+    test_images = load_training_images(curve_views, down, opts.colour_space)
 
     def progress(it: int, total: int, metrics: dict) -> None:
         ctx.on_progress("train", start + (1 - start) * it / max(1, total), f"iteration {it}/{total}")
