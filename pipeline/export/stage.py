@@ -9,9 +9,10 @@ from pipeline.job.options import JobOptions, StageContext
 
 
 def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
-    """reconstruction.ply plus restored/, with_water/, attenuation/, backscatter/, depth/ for every input
-    view (training and held-out alike), at the resolution training used; then report.json and report.html
-    (``pipeline.evaluate.report``), which read those files."""
+    """reconstruction.ply plus the model's renders (``renders/``: restored/, with_water/, attenuation/,
+    backscatter/, depth/) of every registered view (training and held-out alike), at the resolution training
+    used; then report.json and report.html (``pipeline.evaluate.report``), which read those files and the
+    restore stage's."""
     import time
 
     t0 = time.perf_counter()
@@ -25,7 +26,7 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     out = layout.output
     out.mkdir(parents=True, exist_ok=True)
     data = export_ply(state["gaussians"], layout.ply)
-    counts = export_views(state, training_views(job, state), out)
+    counts = export_views(state, training_views(job, state), layout.renders)
     from pipeline.evaluate.report import write_report
 
     reports = write_report(job, out, export_s=time.perf_counter() - t0)

@@ -15,8 +15,13 @@ Job folder::
                         recovery.json + collapsed.pt (a first attempt that lost its scene)
       evaluate.json     evaluate: held-out scores, restoration against ground truth, timings, the curve
       evaluate/         evaluate: true_camera/ renders from the true cameras (jobs with ground truth)
-      output/           export: reconstruction.ply, restored/, with_water/, attenuation/, backscatter/, depth/,
-                        report.json, report.html, speed_vs_error.png
+      restore.json      restore: per photo what was restored (surface share, capped gain, clipping, seconds),
+                        and, with ground truth, the full-resolution scores
+      output/           restore: restored/ (the input photos de-watered: same names, sizes, formats, metadata),
+                        confidence/ (one 8-bit map per photo: 0 = not restored, 255 = full confidence);
+                        export: reconstruction.ply, renders/{restored,with_water,attenuation,backscatter,depth}/
+                        (the model's renders at the training resolution), report.json, report.html,
+                        speed_vs_error.png
       .stages/<stage>.json   completion markers (config hash + result)
     written by the service:
       manifest.json     the job record (a folder without one is an upload still streaming)
@@ -34,8 +39,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-# The per-view image folders of the export (the last two only in medium modes).
-EXPORT_FOLDERS: tuple[str, ...] = ("restored", "with_water", "depth", "attenuation", "backscatter")
+# The per-view folders of the model's renders under output/renders/ (the last two only in medium modes; in mode
+# 3dgs "restored" is not written: a model without water has nothing to restore).
+RENDER_FOLDERS: tuple[str, ...] = ("restored", "with_water", "depth", "attenuation", "backscatter")
 
 # The train folder's files by name. The trainer, its collapse guard and the mode probe are handed the folder
 # (tests and benches train into any folder) and join these names to it; in a job it is JobLayout.train.
@@ -159,10 +165,30 @@ class JobLayout:
     def curve_png(self) -> Path:
         return self.output / "speed_vs_error.png"
 
-    def export_folder(self, name: str) -> Path:
-        if name not in EXPORT_FOLDERS:
-            raise ValueError(f"unknown export folder {name!r}; one of {EXPORT_FOLDERS}")
-        return self.output / name
+    @property
+    def renders(self) -> Path:
+        """The model's renders of every view at the training resolution (one sub-folder per RENDER_FOLDERS)."""
+        return self.output / "renders"
+
+    def render_folder(self, name: str) -> Path:
+        if name not in RENDER_FOLDERS:
+            raise ValueError(f"unknown render folder {name!r}; one of {RENDER_FOLDERS}")
+        return self.renders / name
+
+    # ------------------------------------------------------------------ restore (the photos themselves)
+    @property
+    def restore_result(self) -> Path:
+        return self.root / "restore.json"
+
+    @property
+    def restored(self) -> Path:
+        """The input photos de-watered, at their own size, lens geometry, name and format."""
+        return self.output / "restored"
+
+    @property
+    def confidence(self) -> Path:
+        """One confidence map per restored photo (``<stem>.png``)."""
+        return self.output / "confidence"
 
     # ------------------------------------------------------------------ bookkeeping
     @property

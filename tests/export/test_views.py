@@ -25,7 +25,8 @@ def test_export_writes_every_view_and_matches_the_trainer(small_medium_scene, tm
     tr.save(tmp_path / "ckpt.pt")
     counts = export_views(load_checkpoint(tmp_path / "ckpt.pt"), scene.views, tmp_path / "out")
     assert counts["views"] == len(scene.views)
-    folders = {"restored", "with_water", "depth"} | ({"attenuation", "backscatter"} if mode == "dualphys" else set())
+    # mode 3dgs restores nothing: no "restored" render that would only repeat the with-water image
+    folders = {"with_water", "depth"} | ({"restored", "attenuation", "backscatter"} if mode == "dualphys" else set())
     assert set(counts["folders"]) == folders and {p.name for p in (tmp_path / "out").iterdir()} == folders
     for v in scene.views:
         stem = v.name.rsplit(".", 1)[0]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
+from pipeline.job.layout import RENDER_FOLDERS, JobLayout
 from pipeline.job.markers import atomic_write_json, marker_path, run_marked
 
 REPO = Path(__file__).resolve().parents[2]
@@ -20,10 +20,10 @@ LAYOUT_FILE = Path("pipeline/job/layout.py")
 # The job folder's file names (the list, and what JobLayout adds: asserted to stay in it below).
 FILE_NAMES = ("job.json", "ingest.json", "classify.json", "water.json", "latest.pt", "train.json", "selection.json",
               "recovery.json", "collapsed.pt", "evaluate.json", "reconstruction.ply", "report.json", "report.html",
-              "speed_vs_error.png", ".stages", ".artifacts.json", "manifest.json", "log.txt", "source.json")
+              "speed_vs_error.png", ".stages", ".artifacts.json", "manifest.json", "log.txt", "source.json", "restore.json")
 # Folders whose names are ordinary words elsewhere ("train" the stage, "input" a report key): spelled as a path
 # (``x / "train"``, ``"train/..."``) they are the job folder's.
-FOLDER_NAMES = ("train", "output", "evaluate", "input", "upload", "true_camera")
+FOLDER_NAMES = ("train", "output", "evaluate", "input", "upload", "true_camera", "renders", "confidence")
 # ``images/`` and ``scene/`` are not checked: a generated scene and SfM's output folder have their own.
 # Allowed outside layout.py: a generated scene's true water (a scene path: pipeline.synth.water.TRUE_WATER_FILE).
 ALLOWED = {"water.json": {Path("pipeline/synth/water.py")}}
@@ -96,7 +96,7 @@ def test_the_layout_spells_every_checked_name():
         assert f'"{name}"' in text, name
     layout = JobLayout("/j")
     names = {p.name for p in _paths(layout).values()}
-    assert names - {"j"} <= set(FILE_NAMES) | set(FOLDER_NAMES) | set(EXPORT_FOLDERS) | {
+    assert names - {"j"} <= set(FILE_NAMES) | set(FOLDER_NAMES) | set(RENDER_FOLDERS) | {
         "config.json", "images", "scene", "archive", "x.json"}, names
 
 
@@ -116,18 +116,21 @@ def test_job_layout_paths():
         "evaluate": "evaluate.json", "evaluate_renders": "evaluate", "true_camera": "evaluate/true_camera",
         "output": "output", "ply": "output/reconstruction.ply", "report_json": "output/report.json",
         "report_html": "output/report.html", "curve_png": "output/speed_vs_error.png", "markers": ".stages",
+        "renders": "output/renders", "restore_result": "restore.json", "restored": "output/restored",
+        "confidence": "output/confidence",
         "marker": ".stages/x.json", "manifest": "manifest.json", "log": "log.txt", "input": "input",
         "upload": "input/archive", "source_name": "source.json", "artifacts_cache": ".artifacts.json", "root": ""}
     assert JobLayout(Path("/data/jobs/j1")) == j and isinstance(j.root, Path)
     assert marker_path("/data/jobs/j1", "train") == j.marker("train")
 
 
-def test_export_folders_are_the_known_ones():
+def test_render_folders_are_the_known_ones():
     j = JobLayout("/j")
-    assert [j.relative(j.export_folder(f)) for f in EXPORT_FOLDERS] == [f"output/{f}" for f in EXPORT_FOLDERS]
+    assert [j.relative(j.render_folder(f)) for f in RENDER_FOLDERS] == [f"output/renders/{f}" for f in RENDER_FOLDERS]
+    assert (j.relative(j.restored), j.relative(j.confidence)) == ("output/restored", "output/confidence")
     for bad in ("report.json", "../x", "", "Restored"):
-        with pytest.raises(ValueError, match="unknown export folder"):
-            j.export_folder(bad)
+        with pytest.raises(ValueError, match="unknown render folder"):
+            j.render_folder(bad)
 
 
 def test_the_classifier_decision_falls_back_to_the_legacy_file(tmp_path):

@@ -145,8 +145,8 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
     assert report["sfm"]["registered"] >= 10 and report["sfm"]["total"] == 12
     assert report["quality"]["n_gaussians"] == len(gaussians["means"]) and report["quality"]["per_view"]
     assert str(live.data_dir) not in json.dumps(report)
-    restored = sorted(p for p in by_path if p.startswith("output/restored/") and p.endswith(".png"))
-    with_water = [p for p in by_path if p.startswith("output/with_water/") and p.endswith(".png")]
+    restored = sorted(p for p in by_path if p.startswith("output/renders/restored/") and p.endswith(".png"))
+    with_water = [p for p in by_path if p.startswith("output/renders/with_water/") and p.endswith(".png")]
     assert len(restored) >= 10 and len(restored) == len(with_water), restored  # one per registered view
     png = c.get(by_path[restored[0]]["url"])
     assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"

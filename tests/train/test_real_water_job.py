@@ -54,8 +54,8 @@ def test_real_green_water_gets_a_medium_and_its_colour_back(tmp_path, record_pro
     job = JobLayout(tmp_path / "job")
     r = json.loads(job.report_json.read_text())
     q = r["quality"]
-    rg_in, _, _ = _colour(job.export_folder("with_water"))
-    rg, red, black = _colour(job.export_folder("restored"))
+    rg_in, _, _ = _colour(job.render_folder("with_water"))
+    rg, red, black = _colour(job.render_folder("restored"))
     record_property("result", {"mode": r["mode"], "reason": r["selection"]["reason"], "rg": [rg_in, rg],
                                "clipped_red": red, "black": black, "far_share_max": q["far_share_max"]})
     assert r["mode"] in ("homogeneous", "dualphys"), r["selection"]["reason"]
