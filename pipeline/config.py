@@ -158,6 +158,9 @@ class TrainConfig:
     backend: Backend = "auto"  # rasterizer backend (pipeline.splat.rasterize)
     downscale: int = 1  # train on images shrunk by this integer factor (area averaging)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # RGB composited behind the Gaussians
+    # "srgb": the physics runs on the photos' encoded values; "linear": on linear light (the photos decoded with
+    # the sRGB EOTF; renders encoded back for display): JobOptions.colour_space, docs/DECISIONS.md
+    colour_space: str = "srgb"
     sh_degree: int = 3  # maximum spherical-harmonics degree
     sh_degree_interval: int = 1000  # the active SH degree rises by one every this many iterations
     lr_means: float = 1.6e-4  # initial position learning rate, multiplied by the scene extent

@@ -22,7 +22,8 @@ from pipeline.job.options import JobOptions
 # in the order the API documents them, with the API's bounds.
 CLIENT_OPTIONS: dict[str, dict[str, Any]] = {
     "preset": {}, "mode": {}, "metric_scale": {"gt": 0}, "max_width": {"ge": 32, "le": 16384},
-    "iterations": {"ge": 1}, "seed": {"ge": 0, "le": 2**31 - 1},
+    "iterations": {"ge": 1}, "seed": {"ge": 0, "le": 2**31 - 1}, "colour_space": {}, "restore_format": {},
+    "max_gain": {"ge": 1, "le": 1000},
 }
 
 
@@ -38,13 +39,27 @@ def known_modes() -> list[str]:
     return list(JOB_MODES)
 
 
+def known_colour_spaces() -> list[str]:
+    from pipeline.job.options import COLOUR_SPACES
+
+    return list(COLOUR_SPACES)
+
+
+def known_restore_formats() -> list[str]:
+    from pipeline.job.options import RESTORE_FORMATS
+
+    return list(RESTORE_FORMATS)
+
+
 class _ClientOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    @field_validator("preset", "mode", check_fields=False)
+    @field_validator("preset", "mode", "colour_space", "restore_format", check_fields=False)
     @classmethod
     def _known(cls, v: str, info: ValidationInfo) -> str:
-        choices = known_presets() if info.field_name == "preset" else known_modes()
+        choices = {"preset": known_presets, "mode": known_modes, "restore_format": known_restore_formats,
+                   "colour_space": known_colour_spaces}[
+            info.field_name]()
         if v not in choices:
             raise ValueError(f"unknown {info.field_name} {v!r}; choose from {choices}")
         return v

@@ -41,7 +41,7 @@ from pipeline.job.layout import JobLayout
 from pipeline.scene.records import View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel
-from pipeline.train.render import ViewOutputs, render_outputs
+from pipeline.train.render import ViewOutputs, displayed, render_outputs
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,8 @@ def render_timed(model: TrainedModel, views: Sequence[View], backend: str = "aut
     out = []
     for v in views:
         t0 = time.perf_counter()
-        r = render_outputs(model.gaussians, v, model.medium, model.sh_degree, backend, model.background)
+        r = displayed(render_outputs(model.gaussians, v, model.medium, model.sh_degree, backend, model.background),
+                      model.colour_space)
         out.append(Rendered(v, r, 1000.0 * (time.perf_counter() - t0)))
     return out
 

@@ -16,6 +16,9 @@ class JobCancelled(RuntimeError):
 
 # "auto": a short probe on the training views picks one of the others and sizes the model (pipeline.train.probe).
 JOB_MODES: tuple[str, ...] = ("auto", "3dgs", "homogeneous", "dualphys")
+COLOUR_SPACES: tuple[str, ...] = ("srgb", "linear")
+# How the restore stage writes the de-watered photos (pipeline.restore).
+RESTORE_FORMATS: tuple[str, ...] = ("auto", "tiff16")
 
 
 @dataclass
@@ -33,6 +36,14 @@ class JobOptions:
     metric_scale: float | None = field(default=None, metadata={"help": "metres per scene unit, when known"})
     iterations: int | None = field(default=None, metadata={"help": "override the preset's iteration count"})
     seed: int = field(default=0, metadata={"help": "the seed of SfM and training"})
+    colour_space: str = field(default="srgb", metadata={
+        "help": "where the water physics runs: srgb (on the photos' encoded values) | linear (on linear light: "
+                "the photos decoded with the sRGB curve, the results encoded back)"})
+    restore_format: str = field(default="auto", metadata={
+        "help": "the restored photos' files: auto (each as its input: 8-bit JPEG or PNG) | tiff16 (16-bit TIFF)"})
+    max_gain: float = field(default=8.0, metadata={
+        "help": "cap on the restoration's per-channel gain 1/A (where the water let less light through, noise "
+                "would be amplified more; those pixels get low confidence)"})
     # A generated scene folder (pipeline.synth.procedural) to score against; unset: found next to an ``images``
     # source folder when that sits in a generated scene (pipeline.synth.ground_truth).
     ground_truth: str | None = None
@@ -40,6 +51,12 @@ class JobOptions:
     def __post_init__(self) -> None:
         if self.mode not in JOB_MODES:
             raise ValueError(f"unknown mode {self.mode!r}; choose from {', '.join(JOB_MODES)}")
+        if self.colour_space not in COLOUR_SPACES:
+            raise ValueError(f"unknown colour_space {self.colour_space!r}; choose from {', '.join(COLOUR_SPACES)}")
+        if self.restore_format not in RESTORE_FORMATS:
+            raise ValueError(f"unknown restore_format {self.restore_format!r}; choose from {', '.join(RESTORE_FORMATS)}")
+        if not self.max_gain >= 1.0:
+            raise ValueError(f"max_gain is a gain cap >= 1, got {self.max_gain}")
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -29,6 +29,7 @@ class TrainedModel:
     medium: Medium | None  # None in mode 3dgs
     sh_degree: int  # the SH degree the model was trained up to (capped at the medium's limit in medium modes)
     background: tuple[float, float, float]  # what training composited behind the Gaussians
+    colour_space: str = "srgb"  # where its physics ran: "linear" renders J and I in linear light (render.displayed)
 
 
 def model_from_state(state: dict[str, Any]) -> TrainedModel:
@@ -40,4 +41,5 @@ def model_from_state(state: dict[str, Any]) -> TrainedModel:
         sh = min(sh, cfg["medium"].get("max_sh_degree", 1))
     # Medium modes render J premultiplied over black (the water fills what the Gaussians leave uncovered).
     background = (0.0, 0.0, 0.0) if medium is not None else tuple(cfg.get("background", (0.0, 0.0, 0.0)))
-    return TrainedModel(state["mode"], dict(state["gaussians"]), medium, sh, background)  # type: ignore[arg-type]
+    return TrainedModel(state["mode"], dict(state["gaussians"]), medium, sh, background,  # type: ignore[arg-type]
+                        cfg.get("colour_space", "srgb"))

@@ -110,6 +110,20 @@ class ViewOutputs:
     alpha: np.ndarray  # [H, W]
 
 
+def displayed(out: ViewOutputs, colour_space: str) -> ViewOutputs:
+    """``out`` with J and I as the photos hold them (sRGB-encoded) for a model whose physics ran in linear light;
+    ``out`` itself for ``"srgb"``. A and B stay what the medium computed (transmission and backscatter in the
+    model's own space)."""
+    if colour_space == "srgb":
+        return out
+    if colour_space != "linear":
+        raise ValueError(f"unknown colour space {colour_space!r}")
+    from pipeline.scene.colour import linear_to_srgb
+
+    return ViewOutputs(linear_to_srgb(out.J).astype(np.float32), linear_to_srgb(out.I).astype(np.float32), out.A,
+                       out.B, out.depth, out.alpha)
+
+
 def render_outputs(gaussians: dict[str, torch.Tensor], view: View, medium: Medium | None, sh_degree: int,
                    backend: str = "auto", background: tuple[float, float, float] | torch.Tensor = (0.0, 0.0, 0.0),
                    ) -> ViewOutputs:

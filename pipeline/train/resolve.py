@@ -71,6 +71,7 @@ def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] 
     if mode != "3dgs" and water is not None:
         medium = medium_with_water(medium, water)
     return replace(cfg, mode=mode, seed=opts.seed, downscale=max(1, math.ceil(width / opts.max_width)),
+                   colour_space=opts.colour_space,
                    eval_every=curve_every(cfg.iterations), sh_degree=sh_degree, densify=densify, medium=medium)
 
 
