@@ -143,7 +143,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         metric = per_metre(coef["beta_D"], errs["scale"])
         print("      recovered beta_D (1/m, via the alignment's scale): "
               + ", ".join(f"{c} {m:.3f} (true {t:.3f})" for c, m, t in zip("RGB", metric, truth.beta_D)))
-    print(f"      outputs: {job.output} ({job.ply.name}, restored/, with_water/, attenuation/, backscatter/, depth/)")
+    print(f"      outputs: {job.output} ({job.ply.name}; {job.restored.name} and {job.confidence.name}: your photos "
+          f"de-watered at full resolution; {job.renders.name}: the model's views)")
     print(f"      report: {job.report_html.resolve()}")
     summary = {"scene": str(scene_dir), "job": str(job.root), "alignment": errs, "results": res,
                "seconds": round(time.perf_counter() - t0, 1)}
@@ -169,7 +170,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not src.exists():
         return _fail("run", f"{src} does not exist: give a folder of images or a zip/tar archive of them")
     opts = JobOptions(source=str(src.resolve()), preset=args.preset, mode=args.mode, max_width=args.max_width,
-                      iterations=args.iterations, seed=args.seed)
+                      iterations=args.iterations, seed=args.seed, colour_space=args.colour_space,
+                      restore_format=args.format, max_gain=args.max_gain)
     out = Path(args.out)
     if not args.verbose:  # the bars say where the job is; the stages' log lines would tear them apart
         logging.getLogger().setLevel(logging.WARNING)
@@ -222,8 +224,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         views = []
     what = [w.strip() for w in args.what.split(",") if w.strip()]
     try:
-        counts = render_job(args.job, args.out, views, what, novel=args.orbit)
-    except (RenderError, SceneLayoutError) as e:
+        counts = render_job(args.job, args.out, views, what, novel=args.orbit, max_gain=args.max_gain,
+                            fmt=args.format)
+    except (RenderError, SceneLayoutError, ValueError) as e:
         return _fail("render", str(e))
     print(json.dumps({"out": str(args.out), **counts}, default=str))
     return 0
@@ -333,10 +336,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--iterations", type=int, default=1500, help="training iterations (CPU budget)")
     s.set_defaults(func=cmd_demo)
 
-    from pipeline.job.options import JOB_MODES
+    from pipeline.job.options import COLOUR_SPACES, JOB_MODES, RESTORE_FORMATS, JobOptions
 
-    s = sub.add_parser("run", help="run a whole job (ingest, sfm, classify, train, evaluate, export) in this "
-                                   "process; re-running resumes")
+    defaults = JobOptions()
+    s = sub.add_parser("run", help="run a whole job (ingest, sfm, classify, train, evaluate, restore, export) in "
+                                   "this process; re-running resumes")
     s.add_argument("input", type=Path, help="a folder of images or a zip/tar archive of them")
     s.add_argument("--out", required=True, type=Path, help="the job folder (created; reused to resume)")
     s.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
@@ -345,6 +349,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--iterations", type=_positive, default=None, help="override the preset's iteration count")
     s.add_argument("--max-width", type=_positive, default=400, help="train wider images at an integer downscale")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--colour-space", default=defaults.colour_space, choices=list(COLOUR_SPACES),
+                   help="where the water physics runs: on the photos' sRGB values or on linear light")
+    s.add_argument("--format", default=defaults.restore_format, choices=list(RESTORE_FORMATS),
+                   help="the restored photos: auto (each as its input: 8-bit JPEG or PNG) | tiff16")
+    s.add_argument("--max-gain", type=float, default=defaults.max_gain,
+                   help="cap on the restoration's per-channel gain 1/A")
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser("render", help="render a trained job's views (restored, with water, maps) and novel views")
@@ -353,7 +363,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--views", default="all", help="all | none | comma-separated view names (with or without "
                                                   "extension)")
     s.add_argument("--what", default="restored,with_water",
-                   help="comma-separated: restored, with_water, depth, attenuation, backscatter")
+                   help="comma-separated: photos (the job's input photos de-watered at full resolution, with "
+                        "their confidence maps), restored, with_water, depth, attenuation, backscatter (the "
+                        "model's renders at the training resolution)")
+    s.add_argument("--max-gain", type=float, default=defaults.max_gain,
+                   help="photos: cap on the per-channel gain 1/A")
+    s.add_argument("--format", default=defaults.restore_format, choices=list(RESTORE_FORMATS),
+                   help="photos: auto (as each input: 8-bit JPEG or PNG) | tiff16")
     s.add_argument("--orbit", type=int, default=0, metavar="N",
                    help="also render N novel views on a smooth path through the job's cameras")
     s.set_defaults(func=cmd_render)

@@ -53,7 +53,7 @@ def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
     layout = JobLayout(job)
     for f in (layout.ply, layout.report_json, layout.report_html):
         assert f.is_file(), f
-    assert len(list(layout.export_folder("restored").glob("*.png"))) == 12
+    assert len(list(layout.render_folder("restored").glob("*.png"))) == 12
     # the resolved config is saved, and it is the one the model was trained with
     resolved = json.loads(layout.train_config.read_text())
     assert (resolved["mode"], resolved["iterations"], resolved["downscale"]) == ("homogeneous", 60, 2)
@@ -62,7 +62,7 @@ def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
     assert main(argv) == 0
     out = capsys.readouterr()
     again = _last_json(out.out)
-    assert again["skipped"] == ["ingest", "sfm", "classify", "train", "evaluate", "export"]
+    assert again["skipped"] == ["ingest", "sfm", "classify", "train", "evaluate", "restore", "export"]
     assert "skipped (already done)" in out.err  # the progress lines say so too
 
     rendered = tmp_path / "render"

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.evaluate.evaluation import json_safe, stage_timings
 from pipeline.evaluate.metrics import per_metre
-from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
+from pipeline.job.layout import RENDER_FOLDERS, JobLayout
 from pipeline.job.markers import atomic_write_json, atomic_write_text
 from pipeline.scene.records import scaled_view
 
@@ -121,8 +121,9 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
                            "plot": layout.curve_png.name if ev["speed_vs_error"]["points"] else None},
         "model": model,
         "config": ev.get("config", {}),
-        "outputs": {f: sum(1 for p in layout.export_folder(f).glob("*.png")) for f in EXPORT_FOLDERS
-                    if layout.export_folder(f).is_dir()},
+        "outputs": {f: sum(1 for p in layout.render_folder(f).glob("*.png")) for f in RENDER_FOLDERS
+                    if layout.render_folder(f).is_dir()},
+        "restore": _read_json(layout.restore_result),
         "input": input_summary(job, options),
         "sfm": sfm_summary(job),
     }
@@ -185,6 +186,71 @@ class Pictures:
     views: list[tuple[str, list[tuple[str, bytes]]]]  # per held-out view: (name, [(label, png)])
     maps: list[tuple[str, list[tuple[str, bytes]]]]  # per held-out view: A, B, depth
     curve: bytes | None
+    # per shown photo: (name, [(label, png)]): the photo and its restored copy side by side, their confidence,
+    # and the same crop of both at full resolution
+    originals: list[tuple[str, list[tuple[str, bytes]]]] = field(default_factory=list)
+
+
+SHOWN_WIDTH = 560  # px: the side-by-side photo and restored copy in report.html
+CROP = 224  # px: the full-resolution crop shown beside them
+
+
+def original_pictures(job: Path, report: dict) -> list[tuple[str, list[tuple[str, bytes]]]]:
+    """Photo | restored at a useful size, the confidence map, and a CROP x CROP crop of both at full resolution
+    (centred on the photo's most detailed restored area), for the held-out photos first."""
+    from pipeline.evaluate.plots import image_png
+    from pipeline.scene.images import read_image, resize_area_to
+
+    layout = JobLayout(job)
+    rest = report.get("restore") or {}
+    done = [v["name"] for v in rest.get("views", [])]
+    test = report["metrics"]["test"]["views"]
+    names = ([n for n in test if n in done] + [n for n in done if n not in test])[:MAX_VIEWS_SHOWN]
+    out = []
+    for n in names:
+        photo_path, restored_path = layout.images / n, layout.restored / next(
+            (v["file"] for v in rest["views"] if v["name"] == n), n)
+        if not (photo_path.is_file() and restored_path.is_file()):
+            continue
+        photo, restored = read_image(photo_path), read_image(restored_path)
+        conf_path = layout.confidence / f"{Path(n).stem}.png"
+        conf = read_image(conf_path)[..., 0] if conf_path.is_file() else None
+        H, W = photo.shape[:2]
+        w = min(W, SHOWN_WIDTH)
+        h = max(1, round(H * w / W))
+
+        def small(img):
+            return img if (H, W) == (h, w) else resize_area_to(img, (h, w))
+
+        y, x = _crop_corner(photo, conf, CROP)
+        cells = [(f"photo ({W}x{H})", image_png(small(photo))), ("restored", image_png(small(restored)))]
+        if conf is not None:
+            cells.append(("confidence (white: full; black: not restored)", image_png(small(conf), "gray", 0, 1)))
+        cells += [(f"photo, {CROP}x{CROP} crop at full resolution", image_png(photo[y:y + CROP, x:x + CROP])),
+                  ("restored, same crop", image_png(restored[y:y + CROP, x:x + CROP]))]
+        out.append((n, cells))
+    return out
+
+
+def _crop_corner(photo: np.ndarray, conf: np.ndarray | None, size: int) -> tuple[int, int]:
+    """Top-left corner of the size x size window with the most image detail (gradient energy) among restored
+    pixels, on a coarse grid of candidate windows; the centre when the photo is smaller than the window."""
+    H, W = photo.shape[:2]
+    if H <= size or W <= size:
+        return 0, 0
+    g = photo.mean(axis=2)
+    detail = np.abs(np.diff(g, axis=0))[:, :-1] + np.abs(np.diff(g, axis=1))[:-1, :]
+    if conf is not None:
+        detail = detail * (conf[:-1, :-1] > 0.5)
+    ii = np.pad(detail.astype(np.float64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))  # integral image
+    ys = np.arange(0, H - size, max(size // 2, 1))
+    xs = np.arange(0, W - size, max(size // 2, 1))
+    m = size - 1
+    energy = ii[ys[:, None] + m, xs[None, :] + m] - ii[ys[:, None], xs[None, :] + m] \
+        - ii[ys[:, None] + m, xs[None, :]] + ii[ys[:, None], xs[None, :]]
+    i, j = np.unravel_index(int(np.argmax(energy)), energy.shape)
+    corner = (int(ys[i]), int(xs[j]))
+    return corner
 
 
 def collect_pictures(job: Path, report: dict) -> Pictures:
@@ -196,7 +262,7 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
     from pipeline.synth.ground_truth import load_ground_truth
 
     layout = JobLayout(job)
-    out = layout.export_folder
+    out = layout.render_folder
     names = report["metrics"]["test"]["views"][:MAX_VIEWS_SHOWN]
     down = int(report["model"].get("downscale", 1))
     rest = report["restoration"]
@@ -239,7 +305,7 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
             maps.append((n, cells))
     points = report["speed_vs_error"]["points"]
     curve = speed_vs_error_png(points) if points else None
-    return Pictures(views, maps, curve)
+    return Pictures(views, maps, curve, original_pictures(job, report))
 
 
 def write_report(job: str | Path, out: str | Path | None = None, export_s: float | None = None) -> list[Path]:

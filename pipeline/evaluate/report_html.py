@@ -27,6 +27,7 @@ th{background:#eef3f5}td.l,th.l{text-align:left}.muted{color:#5f7480}
 .row{display:flex;gap:8px;margin:6px 0 14px;flex-wrap:wrap}
 figure{margin:0;flex:1 1 0;min-width:150px;max-width:300px}
 figure img{width:100%;image-rendering:pixelated;display:block}
+figure.wide{max-width:560px;min-width:240px}figure.wide img{image-rendering:auto}
 figcaption{font-size:12px;color:#5f7480}pre{background:#f5f8f9;padding:10px;overflow:auto;font-size:12px}
 """
 
@@ -50,10 +51,48 @@ def table(header: list[str], rows: list[list[Any]], digits: int = 2) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def _figures(cells: list[tuple[str, bytes]]) -> str:
+def _figures(cells: list[tuple[str, bytes]], wide: int = 0) -> str:
+    """A row of captioned pictures; the first ``wide`` of them at the larger size (photo | restored)."""
     return '<div class="row">' + "".join(
-        f'<figure><img src="{data_uri(png)}" alt="{escape(label)}"><figcaption>{escape(label)}</figcaption></figure>'
-        for label, png in cells) + "</div>"
+        f'<figure{" class=wide" if i < wide else ""}><img src="{data_uri(png)}" alt="{escape(label)}">'
+        f'<figcaption>{escape(label)}</figcaption></figure>'
+        for i, (label, png) in enumerate(cells)) + "</div>"
+
+
+def _restored_photos(r: dict, pics: Pictures) -> str:
+    """Your photos, de-watered: what the restore stage did, its scores against ground truth, the pictures."""
+    rs = r.get("restore")
+    html = "<h2>Your photos, de-watered</h2>"
+    if rs is None:
+        return html + "<p class=muted>Not restored (the job ran before the restore stage existed).</p>"
+    if rs["restored"] == 0:
+        return html + f"<p><b>No photo was restored.</b> {escape(rs.get('note') or '')}</p>"
+    views = rs["views"]
+    size = {f"{v['width']}x{v['height']}" for v in views if "width" in v}
+    surface = [v["surface"] for v in views if v.get("surface") is not None]
+    capped = [v["capped"] for v in views if v.get("capped") is not None]
+    html += (f"<p>{rs['restored']} photos restored at their own resolution ({escape(', '.join(sorted(size)))}) "
+             f"and lens geometry into <code>restored/</code>, each as J = (I − B) / A with the water the model "
+             f"learned and the model's depth of every pixel, the gain 1/A capped at {fmt(rs['max_gain'], 1)}. "
+             + (f"Restored surface: {fmt(100 * min(surface), 0)}–{fmt(100 * max(surface), 0)} % of each photo "
+                f"(the rest, open water or seabed the model does not hold, is left as photographed and has "
+                f"confidence 0). " if surface else "")
+             + (f"Pixels at the gain cap: up to {fmt(100 * max(capped), 1)} %. " if capped else "")
+             + f"{fmt(rs['seconds'], 1)} s in all.</p>")
+    if rs.get("not_restored"):
+        html += ("<p class=warn>Not restored: " + escape(", ".join(f"{x['name']} ({x['reason']})"
+                                                                  for x in rs["not_restored"])) + "</p>")
+    truth = rs.get("truth")
+    if truth:
+        rows = [[label, truth[k]["restored_psnr"], truth[k]["render_psnr"], truth[k]["photo_psnr"],
+                 truth[k]["restored_offset_px"], truth[k]["render_offset_px"]]
+                for label, k in (("held-out photos", "test"), ("training photos", "train")) if truth.get(k)]
+        html += ("<p class=muted>Against the true clean images at full resolution over the seabed pixels "
+                 f"({escape(truth['compared'])}):</p>"
+                 + table(["photos", "restored PSNR (dB)", "model render upsampled (dB)", "photo (dB)",
+                          "restored edge offset (px)", "render edge offset (px)"], rows, 3))
+    return html + "".join(f"<p class=muted>{escape(name)}</p>" + _figures(cells, wide=2)
+                          for name, cells in pics.originals)
 
 
 def no_water_removed(r: dict) -> bool:
@@ -244,14 +283,14 @@ def render_html(r: dict, pics: Pictures) -> str:
     parts = [f"<h1>dualphys report: {escape(r['job']['name'])}</h1>",
              f"<p class=muted>created {escape(r['created_at'])}; report schema {r['schema_version']}</p>",
              _quality(r.get("quality")),
-             _kpis(r), _inputs(r), _selection(r),
+             _kpis(r), _inputs(r), _selection(r), _restored_photos(r, pics),
              "<h2>Held-out views</h2>"
              f"<p class=muted>{t['n_views']} views (every 8th by name), {escape(t['compared'])}; PSNR of the pooled "
              f"MSE, SSIM with an 11x11 Gaussian window. LPIPS: {escape(t['lpips_reason'] or 'LPIPS-VGG')}.</p>",
              table(["view", "PSNR (dB)", "SSIM", "render ms"],
                    [[p["name"], p["psnr"], p["ssim"], p["render_ms"]] for p in t["per_view"]], 3),
              _restoration(r["restoration"], r),
-             "<h2>Held-out views: photo, model" + ("" if no_water_removed(r) else ", restored")
+             "<h2>Held-out views: photo, model" + ("" if no_water_removed(r) else ", model restored")
              + (", ground truth" if r["restoration"] else "") + "</h2>"]
     parts += [f"<p class=muted>{escape(name)}</p>" + _figures(cells) for name, cells in pics.views]
     parts.append("<h2>Water maps: attenuation, backscatter, depth</h2>")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.job.layout import EXPORT_FOLDERS, JobLayout
+from pipeline.job.layout import RENDER_FOLDERS, JobLayout
 from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
 from pipeline.scene.records import View, scaled_view
 
@@ -66,16 +66,21 @@ def path_views(views: Sequence[View], n: int) -> list[View]:
 
 
 def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "all",
-               what: Sequence[str] = ("restored", "with_water"), novel: int = 0, backend: str = "auto") -> dict:
+               what: Sequence[str] = ("restored", "with_water"), novel: int = 0, backend: str = "auto",
+               max_gain: float = 8.0, fmt: str = "auto") -> dict:
     """Render the trained model of ``job`` into ``out/<what>/``: the job's views (``"all"`` or names, with or
-    without the extension) and ``novel`` cameras on a path through them. Returns counts."""
+    without the extension) and ``novel`` cameras on a path through them. ``"photos"`` in ``what``: the chosen
+    views' input photos de-watered at full resolution into ``out/restored/`` and ``out/confidence/`` (as the
+    restore stage does, with this gain cap and format; novel cameras have no photo). Returns counts."""
     from pipeline.export.views import export_views
     from pipeline.train.checkpoint import load_checkpoint
 
     job, out = Path(job), Path(out)
-    bad = [w for w in what if w not in EXPORT_FOLDERS]
+    photos = "photos" in what
+    what = [w for w in what if w != "photos"]
+    bad = [w for w in what if w not in RENDER_FOLDERS]
     if bad:
-        raise RenderError(f"unknown output {', '.join(bad)}; choose from {', '.join(EXPORT_FOLDERS)}")
+        raise RenderError(f"unknown output {', '.join(bad)}; choose from photos, {', '.join(RENDER_FOLDERS)}")
     ckpt = JobLayout(job).checkpoint
     if not ckpt.is_file():
         raise RenderError(f"{job} has no trained model ({ckpt} is missing): run `dualphys run` on it first")
@@ -90,14 +95,35 @@ def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "a
             names = ", ".join(sorted(v.name for v in cams))
             raise RenderError(f"no view named {', '.join(missing)} in {job}; it has {names}")
         chosen = [by_name[n] for n in views]
+    restored = _restore_photos(job, state, chosen, out, max_gain, fmt) if photos else None
     chosen = chosen + (path_views(cams, novel) if novel else [])
     if not chosen:
         raise RenderError("nothing to render: no views chosen and no novel views asked for")
-    counts = export_views(state, chosen, out, backend=backend, what=what)
+    counts = export_views(state, chosen, out, backend=backend, what=what) if what else {"views": len(chosen)}
+    if restored is not None:
+        counts["photos"] = restored
     if state.get("medium") is None and set(what) & {"attenuation", "backscatter"}:
         log.warning("the job was trained in mode 3dgs: there is no water, so no attenuation/backscatter maps")
     log.info("rendered %d views (%d novel) of %s into %s", len(chosen), novel, job, out)
     return {**counts, "novel": novel, "mode": state["mode"]}
+
+
+def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, max_gain: float, fmt: str) -> int:
+    """The input photos of ``views`` de-watered into ``out/restored`` and ``out/confidence``; their count."""
+    from pipeline.restore.frame import restore_file
+    from pipeline.restore.stage import NOTHING_TO_RESTORE
+    from pipeline.restore.views import lens_cameras, rendered_view
+    from pipeline.train.model import model_from_state
+
+    model = model_from_state(state)
+    if model.medium is None:
+        raise RenderError(NOTHING_TO_RESTORE)
+    layout = JobLayout(job)
+    lenses = lens_cameras(layout.scene)
+    for v in views:  # out/ gets the job's own folder names for them
+        restore_file(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
+                     lenses[v.name], rendered_view(model, v), max_gain=max_gain, fmt=fmt)
+    return len(views)
 
 
 __all__ = ["RenderError", "path_views", "render_job", "training_views"]

@@ -37,9 +37,11 @@ STAGE_TABLE: tuple[Stage, ...] = (
     Stage("ingest", "pipeline.ingest.stage:stage_ingest", ("source",), 3, "cpu", ("ingest",)),
     Stage("sfm", "pipeline.sfm.stage:stage_sfm", ("seed",), 12, "cpu"),
     Stage("classify", "pipeline.water.stage:stage_classify", (), 2, "cpu"),
-    Stage("train", "pipeline.train.stage:stage_train", ("preset", "mode", "max_width", "iterations", "seed"), 70,
+    Stage("train", "pipeline.train.stage:stage_train", ("preset", "mode", "max_width", "iterations", "seed", "colour_space"),
+          70,
           "train", ("train_result",)),
     Stage("evaluate", "pipeline.evaluate.stage:stage_evaluate", ("ground_truth",), 5, "cpu"),
+    Stage("restore", "pipeline.restore.stage:stage_restore", ("restore_format", "max_gain"), 6, "cpu"),
     Stage("export", "pipeline.export.stage:stage_export", (), 8, "cpu", ("output",)),
 )
 STAGES: tuple[str, ...] = tuple(s.name for s in STAGE_TABLE)

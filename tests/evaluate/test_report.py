@@ -41,7 +41,7 @@ def _report(job_dir):
 
 
 def test_stage_order_puts_evaluate_between_train_and_export():
-    assert STAGES == ("ingest", "sfm", "classify", "train", "evaluate", "export")
+    assert STAGES == ("ingest", "sfm", "classify", "train", "evaluate", "restore", "export")
 
 
 def test_report_json_follows_its_schema_and_holds_real_numbers(job, record_property):

@@ -1,0 +1,77 @@
+"""The restore stage: every registered input photo de-watered at its own resolution and in its own lens
+geometry -> ``JobLayout.restored`` and ``JobLayout.confidence``, with what happened per photo in
+``JobLayout.restore_result``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.job.layout import JobLayout
+from pipeline.job.options import JobOptions, StageContext
+
+# What a 3dgs job's report and restore.json say: that mode models no water.
+NOTHING_TO_RESTORE = "mode 3dgs models no water: nothing was removed, so there are no restored photos"
+
+
+def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
+    """One photo at a time (a frame is restored in row bands: bounded memory at any size); cancellable between
+    photos. A photo SfM did not register has no pose and is listed as not restored. With ground truth (a
+    generated scene) the restored photos are scored at full resolution (:mod:`pipeline.restore.truth`)."""
+    import logging
+    import shutil
+    import time
+
+    from pipeline.job.markers import atomic_write_json
+    from pipeline.job.options import JobCancelled
+    from pipeline.restore.frame import restore_file
+    from pipeline.restore.views import lens_cameras, rendered_view
+    from pipeline.scene.images import list_images
+    from pipeline.train.checkpoint import load_checkpoint
+    from pipeline.train.model import model_from_state
+
+    log = logging.getLogger(__name__)
+    layout = JobLayout(job)
+    for folder in (layout.restored, layout.confidence):  # a re-run never mixes old and new photos
+        shutil.rmtree(folder, ignore_errors=True)
+    state = load_checkpoint(layout.checkpoint)
+    model = model_from_state(state)
+    if model.medium is None:
+        res = {"mode": model.mode, "restored": 0, "note": NOTHING_TO_RESTORE, "views": []}
+        atomic_write_json(layout.restore_result, res)
+        return res
+    from pipeline.evaluate.rerender import training_views
+
+    views = training_views(job, state)
+    lenses = lens_cameras(layout.scene)
+    photos = {p.name for p in list_images(layout.images)}
+    layout.restored.mkdir(parents=True, exist_ok=True)
+    layout.confidence.mkdir(parents=True, exist_ok=True)
+    per_view, t_all = [], time.perf_counter()
+    for k, view in enumerate(views):
+        if ctx.should_cancel():
+            raise JobCancelled(f"cancelled during restore after {k} of {len(views)} photos")
+        t0 = time.perf_counter()
+        src = layout.images / view.name
+        stats = restore_file(src, layout.restored, layout.confidence, lenses[view.name],
+                             rendered_view(model, view), max_gain=opts.max_gain, fmt=opts.restore_format)
+        per_view.append({"name": view.name, **stats, "seconds": round(time.perf_counter() - t0, 3)})
+        ctx.on_progress("restore", (k + 1) / len(views), f"restored {k + 1}/{len(views)} photos")
+    registered = {v.name for v in views}
+    res = {"mode": model.mode, "restored": len(per_view), "max_gain": opts.max_gain,
+           "format": opts.restore_format, "seconds": round(time.perf_counter() - t_all, 3), "views": per_view,
+           "not_restored": [{"name": n, "reason": "SfM did not register it (no pose)"}
+                            for n in sorted(photos - registered)]}
+    gt = _ground_truth(job, opts)
+    if gt is not None:
+        from pipeline.restore.truth import score_restored
+
+        res["truth"] = score_restored(job, gt, model, views, lenses, {v["name"]: v["file"] for v in per_view})
+    atomic_write_json(layout.restore_result, res)
+    log.info("restored %d photos in %.1f s", len(per_view), res["seconds"])
+    return res
+
+
+def _ground_truth(job: Path, opts: JobOptions) -> Path | None:
+    from pipeline.synth.ground_truth import find_ground_truth
+
+    return find_ground_truth(opts.source, opts.ground_truth)

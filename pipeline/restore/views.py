@@ -1,0 +1,60 @@
+"""What the restore stage needs of a job, per photo: its lens camera (SfM's model before undistortion) and the
+trained model's render in the training camera (depth, alpha and the water as effective coefficients).
+
+The lens camera and the training camera share one pose (COLMAP's undistortion keeps poses), so a photo pixel's
+undistorted ray is the same in both: :mod:`pipeline.restore.lens` maps between them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.restore.records import LensCamera, MediumMaps, RenderedView
+from pipeline.scene.records import View, ray_length_factor
+from pipeline.train.model import TrainedModel
+from pipeline.train.render import render_outputs
+
+
+class LensModelError(FileNotFoundError):
+    """The job has no model of its photos' lens (SfM's model before undistortion)."""
+
+
+def lens_cameras(scene_dir: Path) -> dict[str, LensCamera]:
+    """Image name -> its lens camera, from the SfM output ``scene_dir`` (``distorted/sparse/0``: the camera
+    model bundle adjustment refined, at the photos' own resolution)."""
+    from pipeline.scene.colmap import has_model, read_reconstruction
+
+    sparse = scene_dir / "distorted" / "sparse" / "0"
+    if not has_model(sparse):
+        raise LensModelError(f"{sparse} holds no COLMAP model: the photos' lens is unknown, so they cannot be "
+                             f"restored in their own geometry (re-run the sfm stage)")
+    rec = read_reconstruction(sparse)
+    cams = {cid: LensCamera(c.model.name, int(c.width), int(c.height), tuple(float(p) for p in c.params))
+            for cid, c in rec.cameras.items()}
+    return {img.name: cams[img.camera_id] for img in rec.images.values()}
+
+
+def rendered_view(model: TrainedModel, view: View, backend: str = "auto") -> RenderedView:
+    """The model's depth, alpha and water for ``view`` (training camera). The homogeneous medium is three
+    per-channel constants (exact at any resolution); a network medium's per-pixel A and B become effective
+    coefficients (:func:`pipeline.restore.medium.coefficients_from_maps`)."""
+    from pipeline.restore.medium import coefficients_from_maps
+
+    medium = model.medium
+    if medium is None:
+        raise ValueError("mode 3dgs models no water: there is nothing to restore")
+    out = render_outputs(model.gaussians, view, medium, model.sh_degree, backend, model.background)
+    binf = medium.B_inf.detach().double().numpy()
+    if medium.mode == "homogeneous":
+        with torch.no_grad():
+            maps = MediumMaps((medium.w * medium.beta_D).detach().double().numpy(),
+                              medium.beta_B.detach().double().numpy(), binf)
+    else:
+        r = out.depth * ray_length_factor(view.camera)
+        assert out.A is not None and out.B is not None
+        k_A, k_B = coefficients_from_maps(out.A, out.B, r, binf)
+        maps = MediumMaps(k_A, k_B, binf)
+    return RenderedView(view.camera, out.depth.astype(np.float32), out.alpha.astype(np.float32), maps)
