@@ -174,7 +174,8 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
     clipped = np.zeros(n, np.int64)
     a_min = 1.0 / max_gain
     log_g = np.log(max_gain)
-    full_A, full_B = k_A.shape[0] > 1, k_B.shape[0] > 1
+    full_A = 1 if k_A.shape[0] > 1 else 0  # index multipliers: 0 reads the [1, 1, 3] constant
+    full_B = 1 if k_B.shape[0] > 1 else 0
     for i in prange(n):
         for j in range(W):
             if not surface[i, j]:
@@ -184,8 +185,7 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
             rr = np.float64(r[i, j])
             if not rr >= 0.0:  # also NaN
                 rr = 0.0
-            ia, ja = (i, j) if full_A else (0, 0)
-            ib, jb = (i, j) if full_B else (0, 0)
+            ia, ja, ib, jb = i * full_A, j * full_A, i * full_B, j * full_B
             cmin = 1.0
             clip = False
             for c in range(3):

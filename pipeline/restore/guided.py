@@ -17,12 +17,19 @@ import numpy as np
 from pipeline.restore.records import LensCamera
 from pipeline.scene.records import Camera
 
-DEFAULT_EPS = 1e-3  # guide luminance variance units (luminance in [0, 1]); measured on bench/restore.py --filter
+DEFAULT_EPS = 1e-4  # guide luminance variance units (luminance in [0, 1]); measured: bench/restore.py --filter
 
 
 def default_radius(lens: LensCamera, camera: Camera) -> int:
-    """The filter radius in photo pixels: the upsampling factor photo width / render width, at least 1."""
-    return max(1, round(lens.width / camera.width))
+    """The filter radius in photo pixels: half the upsampling factor photo width / render width, at least 1
+    (a radius of the whole factor blurs a depth step more than bilinear does: bench/restore.py --filter)."""
+    return max(1, round(lens.width / camera.width / 2))
+
+
+def default_subsample(radius: int) -> int:
+    """The fast guided filter's block size for ``radius``: radius // 2, at least 1 (two low-res pixels of
+    radius)."""
+    return max(1, radius // 2)
 
 
 def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
