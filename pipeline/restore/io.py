@@ -2,8 +2,8 @@
 
 A 27 MP frame never sits in memory whole: :class:`BandReader` reads scanline ranges in order and keeps only the
 rows the current band and its halo need; :class:`BandWriter` writes scanlines in order. The restored image keeps
-the source's metadata (EXIF, ICC, ...) and its format: JPEG in → JPEG out at quality ≥ 95 (the source's chroma
-subsampling), PNG in → PNG out, anything else (or ``tiff16``) → 16-bit TIFF.
+the source's metadata (EXIF, ICC, ...) and its format: JPEG in → JPEG out at quality 95 without chroma
+subsampling, PNG in → PNG out, anything else (or ``tiff16``) → 16-bit TIFF.
 """
 
 from __future__ import annotations
@@ -64,10 +64,12 @@ def output_spec(src: oiio.ImageSpec | None, width: int, height: int, nchannels: 
     spec = oiio.ImageSpec(width, height, nchannels, fmt)
     if src is not None and keep_metadata:
         for a in src.extra_attribs:
-            if a.name not in _DROP and not a.name.startswith(("tiff:", "png:", "jpeg:")) or a.name == "jpeg:subsampling":
+            encoding = a.name in _DROP or a.name.startswith(("tiff:", "png:", "jpeg:"))
+            if not encoding:
                 spec.attribute(a.name, a.type, a.value)
     if Path(path).suffix.lower() in (".jpg", ".jpeg"):
         spec.attribute("Compression", f"jpeg:{JPEG_QUALITY}")
+        spec.attribute("jpeg:subsampling", "4:4:4")  # restored detail is amplified noise too: no chroma halving
     spec.attribute("Orientation", 1)
     return spec
 
@@ -92,8 +94,9 @@ class BandWriter:
         self.y = 0
 
     def write(self, rows: np.ndarray) -> None:
-        """Append rows [n, W, C] (or [n, W])."""
+        """Append rows [n, W, C] (or [n, W]: one channel; OIIO misreads a 2-D array, so it gets its channel axis)."""
         n = rows.shape[0]
+        rows = rows[..., None] if rows.ndim == 2 else rows
         if not self.out.write_scanlines(self.y, self.y + n, 0, np.ascontiguousarray(rows)):
             raise OSError(f"write failed for {self.path}: {self.out.geterror()}")
         self.y += n
