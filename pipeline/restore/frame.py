@@ -18,8 +18,14 @@ import numpy as np
 import OpenImageIO as oiio
 
 from pipeline.restore.dewater import dewater
-from pipeline.restore.guided import (DEFAULT_EPS, default_radius, default_subsample, fast_guided_filter,
-                                     fill_invalid, halo_rows)
+from pipeline.restore.guided import (
+    DEFAULT_EPS,
+    default_radius,
+    default_subsample,
+    fast_guided_filter,
+    fill_invalid,
+    halo_rows,
+)
 from pipeline.restore.io import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.lens import DEFAULT_TOL, LensGrid
 from pipeline.restore.records import LensCamera, RenderedView
