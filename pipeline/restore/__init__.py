@@ -4,7 +4,7 @@ the reconstruction.
 
 Modules (one job each): ``records`` (inputs), ``lens`` (photo pixel → render camera), ``sample`` (bilinear
 sampling of render maps), ``guided`` (depth to full resolution along the photo's edges), ``medium``
-(per-pixel coefficients from rendered A, B), ``dewater`` (the physics, gain cap, confidence), ``io`` (banded
+(per-pixel coefficients from rendered A, B), ``dewater`` (the physics, gain cap, confidence), ``files`` (banded
 read/write with metadata), ``frame`` (one whole frame in row bands). Rules: docs/DECISIONS.md, "Restoring the
 originals".
 """

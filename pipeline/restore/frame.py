@@ -26,7 +26,7 @@ from pipeline.restore.guided import (
     fill_invalid,
     halo_rows,
 )
-from pipeline.restore.io import BandReader, BandWriter, output_spec, restored_path
+from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.lens import DEFAULT_TOL, LensGrid
 from pipeline.restore.records import LensCamera, RenderedView
 from pipeline.restore.sample import sample_maps
@@ -142,7 +142,7 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
                  options: RestoreOptions = RestoreOptions(), *, tiff16: bool = False,
                  confidence_bits: int = 8) -> FrameResult:
     """Restore the image file ``src`` band by band into ``out_dir``: the restored image (same name and format,
-    metadata kept; :func:`~pipeline.restore.io.restored_path`), ``<stem>_confidence.png`` (8 or 16 bit, 0..max
+    metadata kept; :func:`~pipeline.restore.files.restored_path`), ``<stem>_confidence.png`` (8 or 16 bit, 0..max
     ↔ confidence 0..1) and ``<stem>_surface.png`` (8 bit, 255 = surface). Returns counts, time and paths."""
     t = time.perf_counter()
     src, out_dir = Path(src), Path(out_dir)
