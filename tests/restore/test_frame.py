@@ -26,7 +26,7 @@ def test_round_trip_recovers_clean_image(frame):
     m = res.surface & surf
     assert m.mean() > 0.85
     got = _psnr(res.J / 255, J, m)
-    assert got > 42.0, got  # measured 44.4 dB (bilinear depth: 43.3); the photo itself: 18.8 dB
+    assert got > 42.5, got  # measured 43.8 dB (bilinear depth: 42.7); the photo itself: 18.8 dB
     assert _psnr(I, J, m) < 20
     assert (res.surface & ~surf).mean() < 0.003  # surface beyond the truth: only along the open-water edge
     off = ~res.surface
@@ -64,7 +64,7 @@ def test_file_keeps_format_and_exif(frame, tmp_path, ext):
     mem = restore_array(oiio.ImageBuf(str(src)).get_pixels(oiio.UINT8), fr.lens, rv)  # the decoded source
     if ext == ".png":
         assert (img == mem.J).all()
-    else:  # JPEG q95 4:4:4 of a per-pixel-noise texture: measured 37.9 dB
+    else:  # JPEG q95 4:4:4 of a per-pixel-noise texture (mean abs error 2.8 levels)
         assert _psnr(img / 255, mem.J / 255, np.ones(img.shape[:2], bool)) > 36
     conf = oiio.ImageBuf(str(res.paths["confidence"])).get_pixels(oiio.UINT8)[..., 0]
     assert np.abs(conf.astype(int) - np.round(mem.confidence * 255)).max() <= 1
