@@ -18,6 +18,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from pipeline.restore.dewater import dewater
+from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.guided import (
     DEFAULT_EPS,
     default_radius,
@@ -26,7 +27,6 @@ from pipeline.restore.guided import (
     fill_invalid,
     halo_rows,
 )
-from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.lens import DEFAULT_TOL, LensGrid
 from pipeline.restore.records import LensCamera, RenderedView
 from pipeline.restore.sample import sample_maps
