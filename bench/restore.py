@@ -1,0 +1,178 @@
+"""Restoring one 27 MP original (issue 14): seconds and peak memory per frame, file read and write included.
+
+The frame (6000x4500, SIMPLE_RADIAL k = −0.1, render 400x300 with a tilted seabed, a rock step and open water;
+``pipeline/restore/synthetic.py``) is generated into a JPEG by a child process, so the RSS high-water mark
+(``resource.getrusage``) of this process is the restorer's alone. Also times the slow twins (exact lens map,
+reference guided filter, reference dewater) on a small crop against the fast path on the same crop.
+
+    python bench/restore.py [--width 6000 --height 4500] [--json]
+    python bench/restore.py --filter    # the guided filter's radius / eps sweep (docs/DECISIONS.md)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _write_frame(path: str, width: int, height: int) -> None:
+    """Child process: write the synthetic photo as a JPEG (q95), band by band."""
+    import OpenImageIO as oiio
+
+    from pipeline.restore.synthetic import SynthFrame
+
+    fr = SynthFrame(width, height, factor=width // 400, k1=-0.1)
+    spec = oiio.ImageSpec(width, height, 3, oiio.UINT8)
+    spec.attribute("Make", "BenchCam")
+    spec.attribute("Compression", "jpeg:95")
+    out = oiio.ImageOutput.create(path)
+    out.open(path, spec)
+    for y0 in range(0, height, 500):
+        I, _, _ = fr.photo_rows(y0, min(height, y0 + 500))
+        out.write_scanlines(y0, min(height, y0 + 500), 0, (I * 255 + 0.5).astype(np.uint8))
+    out.close()
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def frame_bench(width: int, height: int) -> dict:
+    from pipeline.restore.frame import RestoreOptions, restore_file
+    from pipeline.restore.synthetic import SynthFrame
+
+    fr = SynthFrame(width, height, factor=width // 400, k1=-0.1)
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "frame.jpg"
+        p = mp.get_context("spawn").Process(target=_write_frame, args=(str(src), width, height))
+        p.start()
+        p.join()
+        view = fr.render()
+        _warm(tmp)
+        rss0 = _rss_mb()
+        t = time.perf_counter()
+        res = restore_file(src, fr.lens, view, Path(tmp) / "out", RestoreOptions())
+        seconds = time.perf_counter() - t
+        return {"frame": f"{width}x{height}", "seconds": round(seconds, 2), "peak_rss_mb": round(_rss_mb()),
+                "rss_before_mb": round(rss0), "surface_fraction": round(res.surface_pixels / (width * height), 3),
+                "clipped": res.clipped, "output_mb": round(res.paths["J"].stat().st_size / 2**20, 1)}
+
+
+def _warm(tmp: str) -> None:
+    """Compile or load every kernel once on a tiny frame (not timed)."""
+    from pipeline.restore.frame import restore_array
+    from pipeline.restore.synthetic import SynthFrame
+
+    fr = SynthFrame(160, 120, factor=8)
+    I, _, _ = fr.photo_rows(0, 120)
+    restore_array((I * 255).astype(np.uint8), fr.lens, fr.render())
+
+
+def twin_bench() -> dict:
+    """Fast path vs slow twins on a 200x150 crop (the reference guided filter is O(r²) per pixel in Python)."""
+    from pipeline.restore.dewater import dewater, dewater_reference
+    from pipeline.restore.guided import fast_guided_filter, guided_filter_reference
+    from pipeline.restore.lens import LensGrid, exact_rays
+    from pipeline.restore.synthetic import SynthFrame
+
+    fr = SynthFrame(1600, 1200, factor=8, k1=-0.1)
+    out = {}
+    t = time.perf_counter()
+    grid = LensGrid(fr.lens)
+    xn, yn = grid.rays(0, 150)
+    fast_lens = time.perf_counter() - t
+    t = time.perf_counter()
+    exact_rays(fr.lens, 0, 150)
+    out["lens_1600x150"] = {"fast_s": round(fast_lens, 4), "slow_s": round(time.perf_counter() - t, 4)}
+    rng = np.random.default_rng(0)
+    g, p = rng.random((150, 200)).astype(np.float32), rng.random((150, 200)).astype(np.float32)
+    fast_guided_filter(g, p, 4, 1e-4, 2)
+    t = time.perf_counter()
+    fast_guided_filter(g, p, 4, 1e-4, 2)
+    f = time.perf_counter() - t
+    t = time.perf_counter()
+    guided_filter_reference(g, p, 4, 1e-4)
+    out["guided_200x150"] = {"fast_s": round(f, 5), "slow_s": round(time.perf_counter() - t, 3)}
+    from pipeline.restore.records import MediumMaps
+
+    img = rng.random((150, 200, 3)).astype(np.float32)
+    r = rng.uniform(0, 10, (150, 200)).astype(np.float32)
+    s = np.ones((150, 200), bool)
+    m = fr.medium
+    dewater(img, r, s, m.k_A, m.k_B, m.B_inf)
+    t = time.perf_counter()
+    dewater(img, r, s, m.k_A, m.k_B, m.B_inf)
+    f = time.perf_counter() - t
+    t = time.perf_counter()
+    dewater_reference(img, r, s, MediumMaps(m.k_A, m.k_B, m.B_inf))
+    out["dewater_200x150"] = {"fast_s": round(f, 5), "slow_s": round(time.perf_counter() - t, 4)}
+    for v in out.values():
+        v["ratio"] = round(v["slow_s"] / max(v["fast_s"], 1e-9), 1)
+    return out
+
+
+def filter_sweep() -> list[dict]:
+    """Depth error of plain bilinear vs the guided filter near the rock's edge and in flat textured areas."""
+    from pipeline.restore._kernels import box_mean, luminance
+    from pipeline.restore.guided import fast_guided_filter, fill_invalid
+    from pipeline.restore.lens import LensGrid, exact_rays
+    from pipeline.restore.sample import sample_maps
+    from pipeline.restore.synthetic import SynthFrame
+
+    rows = []
+    for factor in (4, 8):
+        fr = SynthFrame(1600, 1200, factor=factor, k1=-0.1)
+        I, _, surf = fr.photo_rows(0, 1200)
+        xn, yn = exact_rays(fr.lens, 0, 1200)
+        ztrue, _, rock = fr.depth_at(xn, yn)
+        rv = fr.render()
+        maps = np.stack([fill_invalid(rv.depth[..., None], rv.alpha >= 0.5)[..., 0], rv.alpha], -1)
+        gx, gy = LensGrid(fr.lens).rays(0, 1200)
+        vals, inside = sample_maps(maps, gx, gy, rv.camera)
+        valid = surf & inside & (vals[..., 1] >= 0.5)
+        rk = box_mean(rock.astype(np.float32)[None], 2 * factor)[0]
+        sk = box_mean(surf.astype(np.float32)[None], 2 * factor)[0]
+        near, flat = valid & (rk > 0) & (rk < 1), valid & ((rk == 0) | (rk == 1)) & (sk == 1)
+        L = luminance(I.astype(np.float32), 1.0)
+
+        def row(name, z, factor=factor, near=near, flat=flat, ztrue=ztrue):
+            e = np.abs(z - ztrue)
+            rows.append({"factor": factor, "filter": name, "edge_mae": round(float(e[near].mean()), 4),
+                         "edge_p95": round(float(np.percentile(e[near], 95)), 3),
+                         "flat_mae": round(float(e[flat].mean()), 5)})
+
+        row("bilinear", vals[..., 0])
+        for rad in (factor // 2, factor):
+            for eps in (1e-4, 1e-3, 1e-2):
+                s = max(1, rad // 2)
+                row(f"guided r{rad} s{s} eps{eps:g}", fast_guided_filter(L, vals[..., 0], rad, eps, s))
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--width", type=int, default=6000)
+    ap.add_argument("--height", type=int, default=4500)
+    ap.add_argument("--filter", action="store_true")
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args()
+    if a.filter:
+        res = filter_sweep()
+        for r in res:
+            print(r)
+    else:
+        res = {"frame": frame_bench(a.width, a.height), "twins": twin_bench()}
+        print(json.dumps(res, indent=None if a.json else 2))
+    if a.json and a.filter:
+        print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,253 @@
+"""numba kernels of the restorer (the hot ops). Each has a slow numpy twin next to its caller; tests compare.
+
+Imported lazily by the modules that use them; kernels compile on first call or load from numba's on-disk cache
+(``cache=True``, keyed on this file). Parallel loops run on numba's OpenMP/workqueue pool, never TBB
+(``pipeline.splat._cpu_backend.pin_threading_layer``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from pipeline.splat._cpu_backend import pin_threading_layer
+
+pin_threading_layer()
+
+
+@njit(parallel=True, cache=True)
+def interp_grid_rows(gx, gy, row_cell, row_t, col_cell, col_t):  # pragma: no cover - numba
+    """Bilinear interpolation of two grid maps gx, gy [Kr, Kc] float64 at rows (cell, t) [n] and columns
+    (cell, t) [W]. Returns two float32 [n, W]."""
+    n, W = row_cell.shape[0], col_cell.shape[0]
+    ox = np.empty((n, W), np.float32)
+    oy = np.empty((n, W), np.float32)
+    for r in prange(n):
+        i, t = row_cell[r], row_t[r]
+        for c in range(W):
+            j, s = col_cell[c], col_t[c]
+            w00, w01, w10, w11 = (1 - t) * (1 - s), (1 - t) * s, t * (1 - s), t * s
+            ox[r, c] = w00 * gx[i, j] + w01 * gx[i, j + 1] + w10 * gx[i + 1, j] + w11 * gx[i + 1, j + 1]
+            oy[r, c] = w00 * gy[i, j] + w01 * gy[i, j + 1] + w10 * gy[i + 1, j] + w11 * gy[i + 1, j + 1]
+    return ox, oy
+
+
+@njit(parallel=True, cache=True)
+def sample_bilinear(maps, xn, yn, fx, fy, cx, cy):  # pragma: no cover - numba
+    """Sample maps [h, w, C] float32 at the render-camera positions of rays xn, yn [n, W] (u = fx·xn + cx,
+    pixel-centre convention, edge-clamped). Returns (out [n, W, C] float32, inside [n, W] bool: 0 ≤ u ≤ w and
+    0 ≤ v ≤ h)."""
+    h, w, C = maps.shape
+    n, W = xn.shape
+    out = np.empty((n, W, C), np.float32)
+    inside = np.empty((n, W), np.bool_)
+    for i in prange(n):
+        for j in range(W):
+            u = fx * np.float64(xn[i, j]) + cx
+            v = fy * np.float64(yn[i, j]) + cy
+            inside[i, j] = (u >= 0.0) and (u <= w) and (v >= 0.0) and (v <= h)
+            x = min(max(u - 0.5, 0.0), w - 1.0)
+            y = min(max(v - 0.5, 0.0), h - 1.0)
+            x0 = min(int(x), w - 2) if w > 1 else 0
+            y0 = min(int(y), h - 2) if h > 1 else 0
+            x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+            s, t = x - x0, y - y0
+            for c in range(C):
+                top = maps[y0, x0, c] * (1 - s) + maps[y0, x1, c] * s
+                bot = maps[y1, x0, c] * (1 - s) + maps[y1, x1, c] * s
+                out[i, j, c] = top * (1 - t) + bot * t
+    return out, inside
+
+
+@njit(parallel=True, cache=True)
+def box_mean(x, r):  # pragma: no cover - numba
+    """Mean over the (2r+1)² window clipped to the image, per channel: x [C, H, W] float32 → [C, H, W] float32.
+    Separable running sums with float64 accumulators; O(1) per pixel whatever r."""
+    C, H, W = x.shape
+    tmp = np.empty((C, H, W), np.float32)
+    out = np.empty((C, H, W), np.float32)
+    for ci in prange(C * H):
+        c, i = ci // H, ci % H
+        s = 0.0
+        for k in range(min(r, W - 1) + 1):
+            s += x[c, i, k]
+        for j in range(W):
+            tmp[c, i, j] = s / (min(j + r, W - 1) - max(j - r, 0) + 1)
+            if j + r + 1 < W:
+                s += x[c, i, j + r + 1]
+            if j - r >= 0:
+                s -= x[c, i, j - r]
+    BLK = 256
+    nb = (W + BLK - 1) // BLK
+    for cb in prange(C * nb):
+        c, b = cb // nb, cb % nb
+        j0, j1 = b * BLK, min(W, b * BLK + BLK)
+        acc = np.zeros(j1 - j0, np.float64)
+        for k in range(min(r, H - 1) + 1):
+            for j in range(j0, j1):
+                acc[j - j0] += tmp[c, k, j]
+        for i in range(H):
+            inv = 1.0 / (min(i + r, H - 1) - max(i - r, 0) + 1)
+            for j in range(j0, j1):
+                out[c, i, j] = acc[j - j0] * inv
+            if i + r + 1 < H:
+                for j in range(j0, j1):
+                    acc[j - j0] += tmp[c, i + r + 1, j]
+            if i - r >= 0:
+                for j in range(j0, j1):
+                    acc[j - j0] -= tmp[c, i - r, j]
+    return out
+
+
+@njit(parallel=True, cache=True)
+def guided_stats(I, p):  # pragma: no cover - numba
+    """Stack [I, p, I·p, I·I] of guide I and source p [H, W] float32 → [4, H, W] float32."""
+    H, W = I.shape
+    out = np.empty((4, H, W), np.float32)
+    for i in prange(H):
+        for j in range(W):
+            a, b = I[i, j], p[i, j]
+            out[0, i, j] = a
+            out[1, i, j] = b
+            out[2, i, j] = a * b
+            out[3, i, j] = a * a
+    return out
+
+
+@njit(parallel=True, cache=True)
+def guided_coeffs(m, eps):  # pragma: no cover - numba
+    """He's per-window linear coefficients from the box means m [4, H, W] (of I, p, I·p, I·I): a = cov(I, p) /
+    (var(I) + eps), b = mean(p) − a·mean(I). Returns [2, H, W] float32."""
+    _, H, W = m.shape
+    out = np.empty((2, H, W), np.float32)
+    for i in prange(H):
+        for j in range(W):
+            mi, mp = np.float64(m[0, i, j]), np.float64(m[1, i, j])
+            var = max(m[3, i, j] - mi * mi, 0.0)
+            a = (m[2, i, j] - mi * mp) / (var + eps)
+            out[0, i, j] = a
+            out[1, i, j] = mp - a * mi
+    return out
+
+
+@njit(parallel=True, cache=True)
+def guided_apply(mab, I):  # pragma: no cover - numba
+    """q = mean(a)·I + mean(b): mab [2, H, W], I [H, W] → [H, W] float32."""
+    _, H, W = mab.shape
+    out = np.empty((H, W), np.float32)
+    for i in prange(H):
+        for j in range(W):
+            out[i, j] = mab[0, i, j] * I[i, j] + mab[1, i, j]
+    return out
+
+
+@njit(parallel=True, cache=True)
+def luminance(img, scale):  # pragma: no cover - numba
+    """Rec. 709 luma of img [H, W, 3] (any numeric dtype) times ``scale`` (e.g. 1/255) → [H, W] float32."""
+    H, W, _ = img.shape
+    out = np.empty((H, W), np.float32)
+    for i in prange(H):
+        for j in range(W):
+            out[i, j] = scale * (0.2126 * img[i, j, 0] + 0.7152 * img[i, j, 1] + 0.0722 * img[i, j, 2])
+    return out
+
+
+@njit(inline="always")
+def _srgb_to_linear(x):  # pragma: no cover - numba
+    return x / 12.92 if x <= 0.04045 else ((x + 0.055) / 1.055) ** 2.4
+
+
+@njit(inline="always")
+def _linear_to_srgb(x):  # pragma: no cover - numba
+    return 12.92 * x if x <= 0.0031308 else 1.055 * x ** (1.0 / 2.4) - 0.055
+
+
+@njit(parallel=True, cache=True)
+def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max):  # pragma: no cover - numba
+    """The physics per pixel (twin: ``pipeline.restore.dewater.dewater_reference``).
+
+    img [n, W, 3] any dtype (× ``scale`` → [0, 1]); r [n, W] float32 range; surface [n, W] bool; k_A, k_B
+    [n, W, 3] or [1, 1, 3] float32; B_inf [3]; max_gain > 1. Writes J [n, W, 3] (uint8 or uint16) quantised to
+    0..out_max; returns (confidence [n, W] float32, clipped pixel count)."""
+    n, W, _ = img.shape
+    conf = np.zeros((n, W), np.float32)
+    clipped = np.zeros(n, np.int64)
+    a_min = 1.0 / max_gain
+    log_g = np.log(max_gain)
+    full_A = 1 if k_A.shape[0] > 1 else 0  # index multipliers: 0 reads the [1, 1, 3] constant
+    full_B = 1 if k_B.shape[0] > 1 else 0
+    for i in prange(n):
+        for j in range(W):
+            if not surface[i, j]:
+                for c in range(3):
+                    J[i, j, c] = int(min(max(scale * img[i, j, c], 0.0), 1.0) * out_max + 0.5)
+                continue
+            rr = np.float64(r[i, j])
+            if not rr >= 0.0:  # also NaN
+                rr = 0.0
+            ia, ja, ib, jb = i * full_A, j * full_A, i * full_B, j * full_B
+            cmin = 1.0
+            clip = False
+            for c in range(3):
+                A = np.exp(-min(max(np.float64(k_A[ia, ja, c]) * rr, 0.0), 80.0))
+                B = B_inf[c] * -np.expm1(-min(max(np.float64(k_B[ib, jb, c]) * rr, 0.0), 80.0))
+                Ae = max(A, a_min)
+                cmin = min(cmin, np.log(Ae * max_gain) / log_g)
+                x = scale * np.float64(img[i, j, c])
+                if linear:
+                    x = _srgb_to_linear(x)
+                v = (x - B) / Ae
+                if v < 0.0 or v > 1.0:
+                    clip = True
+                    v = min(max(v, 0.0), 1.0)
+                if linear:
+                    v = _linear_to_srgb(v)
+                J[i, j, c] = int(v * out_max + 0.5)
+            conf[i, j] = max(cmin, 0.0)
+            if clip:
+                clipped[i] += 1
+    return conf, clipped.sum()
+
+
+@njit(parallel=True, cache=True)
+def block_mean(x, s):  # pragma: no cover - numba
+    """Mean of each s×s block of x [H, W] (partial blocks at the right/bottom: mean of what is there) →
+    [ceil(H/s), ceil(W/s)] float32."""
+    H, W = x.shape
+    h, w = (H + s - 1) // s, (W + s - 1) // s
+    out = np.empty((h, w), np.float32)
+    for bi in prange(h):
+        i0, i1 = bi * s, min(H, bi * s + s)
+        for bj in range(w):
+            j0, j1 = bj * s, min(W, bj * s + s)
+            acc = 0.0
+            for i in range(i0, i1):
+                for j in range(j0, j1):
+                    acc += x[i, j]
+            out[bi, bj] = acc / ((i1 - i0) * (j1 - j0))
+    return out
+
+
+@njit(parallel=True, cache=True)
+def upsample_apply(mab, I, s, off):  # pragma: no cover - numba
+    """Fast guided filter's last step: q = a·I + b + off with a, b = mab [2, h, w] (one value per s×s block,
+    sitting at the block centre) interpolated bilinearly (edge-clamped) to every pixel of I [H, W]."""
+    _, h, w = mab.shape
+    H, W = I.shape
+    out = np.empty((H, W), np.float32)
+    for i in prange(H):
+        y = min(max((i + 0.5) / s - 0.5, 0.0), h - 1.0)
+        y0 = min(int(y), max(h - 2, 0))
+        y1 = min(y0 + 1, h - 1)
+        t = y - y0
+        for j in range(W):
+            x = min(max((j + 0.5) / s - 0.5, 0.0), w - 1.0)
+            x0 = min(int(x), max(w - 2, 0))
+            x1 = min(x0 + 1, w - 1)
+            u = x - x0
+            a = (mab[0, y0, x0] * (1 - u) + mab[0, y0, x1] * u) * (1 - t) + \
+                (mab[0, y1, x0] * (1 - u) + mab[0, y1, x1] * u) * t
+            b = (mab[1, y0, x0] * (1 - u) + mab[1, y0, x1] * u) * (1 - t) + \
+                (mab[1, y1, x0] * (1 - u) + mab[1, y1, x1] * u) * t
+            out[i, j] = a * I[i, j] + b + off
+    return out

@@ -1,0 +1,82 @@
+"""The physics per pixel: J = (I − B(r)) / A(r), with a per-channel gain cap and a confidence map.
+
+Rules (docs/DECISIONS.md, "Restoring the originals"):
+- Gain cap: A_eff = max(A, 1/max_gain) per channel, so no channel is amplified more than ``max_gain`` times.
+- Confidence c = min over channels of ln(A_eff·g) / ln g, g = max_gain: 1 where the water attenuates nothing,
+  0 where a channel reaches the cap (its restoration is then only partial); 0 where there is no surface.
+- No surface (alpha < 0.5, outside the render camera, or z ≤ 0): nothing is invented, J is the photo's pixel
+  unchanged.
+- J is clipped to [0, 1]; the count of surface pixels with any channel clipped is returned.
+- ``space``: "srgb" applies the model to the stored (sRGB-encoded) values, as the model was trained;
+  "linear" converts the photo to linear light first and J back to sRGB after (the coefficients must then be
+  linear-light ones).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.restore._colour import linear_to_srgb, srgb_to_linear
+from pipeline.restore.records import MediumMaps
+
+SPACES = ("srgb", "linear")
+
+
+def _check(max_gain: float, space: str) -> None:
+    if not max_gain > 1:
+        raise ValueError(f"max_gain must be > 1, got {max_gain}")
+    if space not in SPACES:
+        raise ValueError(f"space must be one of {SPACES}, got {space!r}")
+
+
+def _k(k: np.ndarray) -> np.ndarray:
+    """A coefficient as float32 [n, W, 3] or [1, 1, 3], NaN → 0."""
+    k = np.nan_to_num(np.asarray(k, np.float32), nan=0.0)
+    return np.ascontiguousarray(k.reshape(1, 1, 3) if k.ndim == 1 else k)
+
+
+def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray, k_B: np.ndarray,
+            B_inf: np.ndarray, *, max_gain: float = 8.0, space: str = "srgb", out_max: int = 255,
+            scale: float | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """Restore a block of pixels.
+
+    Args:
+        img: [n, W, 3] the photo, uint8/uint16 or float in [0, 1].
+        r: [n, W] range along the ray (scene units); surface: [n, W] bool.
+        k_A, k_B: [3] or [n, W, 3] effective coefficients; B_inf: [3].
+        max_gain: the per-channel gain cap (> 1); space: "srgb" | "linear"; out_max: 255 → uint8 J, 65535 →
+        uint16 J.
+        scale: multiplies img to [0, 1]; default from its dtype (1/255, 1/65535, 1).
+    Returns (J [n, W, 3] uint8 or uint16, confidence [n, W] float32 in [0, 1], clipped pixel count)."""
+    from pipeline.restore._kernels import dewater as kernel
+
+    _check(max_gain, space)
+    if scale is None:
+        scale = 1.0 / np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else 1.0
+    J = np.empty(img.shape, np.uint8 if out_max == 255 else np.uint16)
+    conf, clipped = kernel(np.ascontiguousarray(img), float(scale), np.ascontiguousarray(r, np.float32),
+                           np.ascontiguousarray(surface, np.bool_), _k(k_A), _k(k_B),
+                           np.asarray(B_inf, np.float64).reshape(3), float(max_gain), space == "linear", J,
+                           int(out_max))
+    return J, conf, int(clipped)
+
+
+def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,
+                      max_gain: float = 8.0, space: str = "srgb") -> tuple[np.ndarray, np.ndarray, int]:
+    """Slow twin of :func:`dewater` (numpy, float64, unquantised). img float [n, W, 3] in [0, 1].
+    Returns (J float64 [n, W, 3] in [0, 1], confidence [n, W], clipped pixel count)."""
+    _check(max_gain, space)
+    x = np.asarray(img, np.float64)
+    x = srgb_to_linear(x) if space == "linear" else x
+    rr = np.nan_to_num(np.maximum(np.asarray(r, np.float64), 0.0), nan=0.0)[..., None]
+    A = np.exp(-np.clip(np.nan_to_num(medium.k_A) * rr, 0, 80))
+    B = medium.B_inf * -np.expm1(-np.clip(np.nan_to_num(medium.k_B) * rr, 0, 80))
+    Ae = np.maximum(A, 1.0 / max_gain)
+    raw = (x - B) / Ae
+    J = np.clip(raw, 0, 1)
+    J = linear_to_srgb(J) if space == "linear" else J
+    surface = np.asarray(surface, bool)
+    J = np.where(surface[..., None], J, np.clip(img, 0, 1))
+    conf = np.where(surface, np.maximum((np.log(Ae * max_gain) / np.log(max_gain)).min(-1), 0.0), 0.0)
+    clipped = int((surface & ((raw < 0) | (raw > 1)).any(-1)).sum())
+    return J, conf, clipped

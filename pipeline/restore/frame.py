@@ -1,0 +1,182 @@
+"""Restore one whole frame in row bands: bounded memory whatever the photo's size.
+
+Per band of ``band_rows`` photo rows (plus a halo of :func:`~pipeline.restore.guided.halo_rows` for the filter):
+lens map → sample the render's filled depth and alpha → guided filter on the photo's luminance → surface mask
+(sampled alpha ≥ 0.5, inside the render camera, z > 0) → range r = z·√(1 + xn² + yn²) → dewater. Bands start at
+multiples of the filter's block size, so the result equals a whole-frame run up to float rounding.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from pipeline.restore.dewater import dewater
+from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
+from pipeline.restore.guided import (
+    DEFAULT_EPS,
+    default_radius,
+    default_subsample,
+    fast_guided_filter,
+    fill_invalid,
+    halo_rows,
+)
+from pipeline.restore.lens import DEFAULT_TOL, LensGrid
+from pipeline.restore.records import LensCamera, RenderedView
+from pipeline.restore.sample import sample_maps
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RestoreOptions:
+    """How to restore. radius: guided-filter radius in photo pixels (None: half the upsampling factor; 0: plain
+    bilinear depth); eps: its regulariser (luminance² units); band_rows: photo rows per band (rounded up to the
+    filter's block size)."""
+
+    max_gain: float = 8.0
+    space: str = "srgb"
+    radius: int | None = None
+    eps: float = DEFAULT_EPS
+    band_rows: int = 256
+    lens_tol: float = DEFAULT_TOL
+
+
+@dataclass
+class FrameResult:
+    """One restored frame. Arrays only from :func:`restore_array`; paths only from :func:`restore_file`."""
+
+    J: np.ndarray | None = None  # [H, W, 3] uint8 / uint16
+    confidence: np.ndarray | None = None  # [H, W] float32 in [0, 1]
+    surface: np.ndarray | None = None  # [H, W] bool
+    clipped: int = 0  # surface pixels with a channel clipped to [0, 1]
+    surface_pixels: int = 0
+    seconds: float = 0.0
+    paths: dict[str, Path] = field(default_factory=dict)
+
+
+class FrameRestorer:
+    """Everything of one view that does not depend on the photo's rows: the lens grid, the render's filled
+    depth, the filter's settings. ``band(...)`` restores one band."""
+
+    def __init__(self, lens: LensCamera, view: RenderedView, options: RestoreOptions = RestoreOptions()):
+        self.lens, self.view, self.opt = lens, view, options
+        self.grid = LensGrid(lens, tol=options.lens_tol)
+        self.radius = default_radius(lens, view.camera) if options.radius is None else int(options.radius)
+        self.s = default_subsample(self.radius) if self.radius > 0 else 1
+        self.halo = halo_rows(self.radius, self.s) if self.radius > 0 else 0
+        self.band_rows = -(-options.band_rows // self.s) * self.s
+        depth = np.nan_to_num(np.asarray(view.depth, np.float64), nan=0.0, posinf=0.0)
+        alpha = np.nan_to_num(np.asarray(view.alpha, np.float64), nan=0.0)
+        ok = (alpha >= 0.5) & (depth > 0)
+        z = fill_invalid(depth[..., None], ok)[..., 0]
+        self.maps = np.ascontiguousarray(np.stack([z, np.where(ok, alpha, 0.0)], -1), np.float32)  # [h, w, 2]
+        m = view.medium
+        self.kmaps = None if m.constant else np.ascontiguousarray(np.concatenate(
+            [np.broadcast_to(m.k_A, (*z.shape, 3)), np.broadcast_to(m.k_B, (*z.shape, 3))], -1), np.float32)
+        logger.debug("restore %dx%d: lens grid step %d (%.4f px), filter r=%d s=%d halo=%d", lens.width,
+                     lens.height, self.grid.step, self.grid.error, self.radius, self.s, self.halo)
+
+    def bands(self) -> Iterator[tuple[int, int, int, int]]:
+        """(e0, y0, y1, e1) for each band: its rows [y0, y1) and the rows [e0, e1) read with the halo."""
+        H = self.lens.height
+        for y0 in range(0, H, self.band_rows):
+            y1 = min(H, y0 + self.band_rows)
+            yield max(0, y0 - self.halo), y0, y1, min(H, y1 + self.halo)
+
+    def band(self, rows: np.ndarray, e0: int, y0: int, y1: int, out_max: int = 255
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Restore rows [y0, y1) given the photo's rows [e0, e0 + len(rows)) (uint8/uint16/float [m, W, 3]).
+        Returns (J [n, W, 3] uint8/uint16, confidence [n, W] float32, surface [n, W] bool, clipped count)."""
+        from pipeline.restore._kernels import luminance
+
+        e1 = e0 + rows.shape[0]
+        scale = 1.0 / np.iinfo(rows.dtype).max if np.issubdtype(rows.dtype, np.integer) else 1.0
+        xn, yn = self.grid.rays(e0, e1)
+        vals, inside = sample_maps(self.maps, xn, yn, self.view.camera)
+        z = vals[..., 0]
+        if self.radius > 0:
+            z = fast_guided_filter(luminance(np.ascontiguousarray(rows), scale), z, self.radius, self.opt.eps,
+                                   self.s)
+        c = slice(y0 - e0, y1 - e0)
+        xc, yc, z = xn[c], yn[c], z[c]
+        surface = inside[c] & (vals[c, :, 1] >= 0.5) & (z > 0)
+        r = z * np.sqrt(1.0 + xc * xc + yc * yc)
+        m = self.view.medium
+        k_A, k_B = m.k_A, m.k_B
+        if self.kmaps is not None:
+            k, _ = sample_maps(self.kmaps, xc, yc, self.view.camera)
+            k_A, k_B = k[..., :3], k[..., 3:]
+        J, conf, clipped = dewater(rows[c], r, surface, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
+                                   space=self.opt.space, out_max=out_max, scale=scale)
+        return J, conf, surface, clipped
+
+
+def restore_array(photo: np.ndarray, lens: LensCamera, view: RenderedView,
+                  options: RestoreOptions = RestoreOptions(), out_max: int = 255) -> FrameResult:
+    """Restore a photo held in memory, [H, W, 3] uint8/uint16 or float in [0, 1] (display orientation, the size
+    of ``lens``). Returns J, confidence and surface as arrays."""
+    t = time.perf_counter()
+    H, W = photo.shape[:2]
+    if (W, H) != (lens.width, lens.height):
+        raise ValueError(f"photo is {W}x{H}, lens camera {lens.width}x{lens.height}")
+    fr = FrameRestorer(lens, view, options)
+    res = FrameResult(J=np.empty((H, W, 3), np.uint8 if out_max == 255 else np.uint16),
+                      confidence=np.empty((H, W), np.float32), surface=np.empty((H, W), bool))
+    for e0, y0, y1, e1 in fr.bands():
+        J, conf, surf, clipped = fr.band(photo[e0:e1], e0, y0, y1, out_max)
+        res.J[y0:y1], res.confidence[y0:y1], res.surface[y0:y1] = J, conf, surf
+        res.clipped += clipped
+    res.surface_pixels = int(res.surface.sum())
+    res.seconds = time.perf_counter() - t
+    return res
+
+
+def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
+                 options: RestoreOptions = RestoreOptions(), *, tiff16: bool = False,
+                 confidence_bits: int = 8) -> FrameResult:
+    """Restore the image file ``src`` band by band into ``out_dir``: the restored image (same name and format,
+    metadata kept; :func:`~pipeline.restore.files.restored_path`), ``<stem>_confidence.png`` (8 or 16 bit, 0..max
+    ↔ confidence 0..1) and ``<stem>_surface.png`` (8 bit, 255 = surface). Returns counts, time and paths."""
+    t = time.perf_counter()
+    src, out_dir = Path(src), Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    reader = BandReader(src)
+    if (reader.width, reader.height) != (lens.width, lens.height):
+        raise ValueError(f"{src} is {reader.width}x{reader.height}, lens camera {lens.width}x{lens.height}")
+    fr = FrameRestorer(lens, view, options)
+    W, H = reader.width, reader.height
+    j_path = restored_path(src, out_dir, tiff16)
+    sixteen = j_path.suffix == ".tif"
+    c_max = 65535 if confidence_bits == 16 else 255
+    paths = {"J": j_path, "confidence": out_dir / f"{src.stem}_confidence.png",
+             "surface": out_dir / f"{src.stem}_surface.png"}
+    writers = {
+        "J": BandWriter(j_path, output_spec(reader.spec, W, H, 3, oiio.UINT16 if sixteen else oiio.UINT8, j_path)),
+        "confidence": BandWriter(paths["confidence"], output_spec(
+            None, W, H, 1, oiio.UINT16 if c_max == 65535 else oiio.UINT8, paths["confidence"])),
+        "surface": BandWriter(paths["surface"], output_spec(None, W, H, 1, oiio.UINT8, paths["surface"])),
+    }
+    res = FrameResult(paths=paths)
+    try:
+        for e0, y0, y1, e1 in fr.bands():
+            J, conf, surf, clipped = fr.band(reader.rows(e0, e1), e0, y0, y1, 65535 if sixteen else 255)
+            writers["J"].write(J)
+            writers["confidence"].write((conf * c_max + 0.5).astype(np.uint16 if c_max == 65535 else np.uint8))
+            writers["surface"].write(surf.astype(np.uint8) * 255)
+            res.clipped += clipped
+            res.surface_pixels += int(surf.sum())
+    finally:
+        reader.close()
+        for w in writers.values():
+            w.close()
+    res.seconds = time.perf_counter() - t
+    logger.info("restored %s: %.2f s, %d surface pixels, %d clipped", src.name, res.seconds, res.surface_pixels,
+                res.clipped)
+    return res

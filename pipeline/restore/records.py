@@ -1,0 +1,75 @@
+"""Records of the restorer: the photo's lens camera, the medium as per-pixel coefficients, one rendered view.
+
+Conventions (those of ``pipeline/scene/records.py``): pixel-centre convention for every camera (the centre of
+the top-left pixel is at (0.5, 0.5), COLMAP's and pycolmap's), poses ``cam_from_world``. The lens camera and the
+render camera share one pose, so a pixel's undistorted normalised ray (xn, yn) = (x/z, y/z) is the same in
+both; the render camera is the undistorted PINHOLE camera at the training resolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.scene.records import Camera
+
+
+@dataclass(frozen=True)
+class LensCamera:
+    """A COLMAP camera model at the photo's own resolution (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``,
+    ``PINHOLE``, ``SIMPLE_PINHOLE`` ...); ``params`` in COLMAP's order for that model."""
+
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+    def colmap(self):
+        """The same camera as a ``pycolmap.Camera`` (whose ``cam_from_img`` undistorts pixel-centre coordinates
+        [N, 2] into normalised rays [N, 2])."""
+        import pycolmap
+
+        return pycolmap.Camera(model=self.model, width=self.width, height=self.height,
+                               params=np.asarray(self.params, dtype=np.float64))
+
+
+@dataclass
+class MediumMaps:
+    """The water of one view as effective coefficients, one path for both medium modes:
+
+        A = exp(−k_A·r),   B = B∞·(1 − exp(−k_B·r)),   r = distance along the ray (scene units).
+
+    ``k_A`` / ``k_B`` are either [3] (homogeneous medium: β_D, β_B everywhere, exact closed form) or
+    [h, w, 3] maps in the render camera (network medium; :func:`pipeline.restore.medium.coefficients_from_maps`),
+    sampled bilinearly at full resolution and re-evaluated with the full-resolution range. ``B_inf`` [3]."""
+
+    k_A: np.ndarray
+    k_B: np.ndarray
+    B_inf: np.ndarray
+
+    @property
+    def constant(self) -> bool:
+        """True when both coefficients are per-channel constants [3]."""
+        return np.ndim(self.k_A) == 1 and np.ndim(self.k_B) == 1
+
+
+@dataclass
+class RenderedView:
+    """What the trained model rendered for one view in its render camera (PINHOLE, training resolution).
+
+    depth [h, w]: camera z in scene units, 0 where nothing was rendered; alpha [h, w] in [0, 1] (a pixel is
+    surface where alpha ≥ 0.5); medium: the view's water."""
+
+    camera: Camera
+    depth: np.ndarray
+    alpha: np.ndarray
+    medium: MediumMaps
+
+    def __post_init__(self) -> None:
+        shape = (self.camera.height, self.camera.width)
+        if np.shape(self.depth) != shape or np.shape(self.alpha) != shape:
+            raise ValueError(f"depth {np.shape(self.depth)} and alpha {np.shape(self.alpha)} must be {shape}")
+        for k in (self.medium.k_A, self.medium.k_B):
+            if np.ndim(k) != 1 and np.shape(k) != (*shape, 3):
+                raise ValueError(f"medium coefficients must be [3] or {(*shape, 3)}, got {np.shape(k)}")

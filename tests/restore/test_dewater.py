@@ -1,0 +1,57 @@
+"""The dewatering rules: gain cap, no-surface pixels, finite outputs at extremes, medium coefficients."""
+
+import numpy as np
+
+from pipeline.restore.dewater import dewater
+from pipeline.restore.medium import coefficients_from_maps
+
+
+def _gain(J, img, surf):
+    return J.astype(np.float64) / 65535 / np.maximum(img, 1e-9)
+
+
+def test_gain_cap_holds_per_channel():
+    img = np.full((4, 50, 3), 0.1, np.float32)
+    r = np.tile(np.linspace(0, 100, 50, dtype=np.float32), (4, 1))
+    surf = np.ones((4, 50), bool)
+    for g in (2.0, 8.0, 30.0):
+        J, c, _ = dewater(img, r, surf, np.array([0.5, 0.2, 0.1]), np.zeros(3), np.zeros(3), max_gain=g,
+                          out_max=65535)
+        assert _gain(J, img, surf).max() <= g * (1 + 1e-4)
+        assert c[:, -1].max() == 0 and c[:, 0].min() == 1  # at the cap: 0; no water: 1
+        assert (np.diff(c[0]) <= 1e-7).all()  # confidence falls with range
+
+
+def test_no_surface_is_the_photo_with_zero_confidence():
+    rng = np.random.default_rng(0)
+    img = (rng.random((6, 7, 3)) * 255).astype(np.uint8)
+    surf = np.zeros((6, 7), bool)
+    J, c, n = dewater(img, np.full((6, 7), 5.0), surf, np.ones(3), np.ones(3), np.full(3, 0.3))
+    assert (J == img).all() and (c == 0).all() and n == 0
+
+
+def test_finite_at_extremes():
+    H, W = 4, 6
+    for val in (0.0, 1.0):
+        img = np.full((H, W, 3), val, np.float32)
+        for depth in (0.0, 1e4, np.nan, -3.0):
+            for k in (0.0, 1e-9, 50.0, 1e6, np.nan):
+                J, c, _ = dewater(img, np.full((H, W), depth, np.float32), np.ones((H, W), bool), np.full(3, k),
+                                  np.full(3, k), np.array([0.0, 0.5, 1.0]), space="linear")
+                assert J.dtype == np.uint8 and np.isfinite(c).all() and (c >= 0).all() and (c <= 1).all()
+
+
+def test_coefficients_from_rendered_maps_roundtrip():
+    rng = np.random.default_rng(1)
+    r = rng.uniform(0.5, 12, (20, 30))
+    kA, kB, binf = np.array([0.4, 0.15, 0.1]), np.array([0.3, 0.2, 0.1]), np.array([0.05, 0.2, 0.3])
+    A = np.exp(-kA * r[..., None])
+    B = binf * (1 - np.exp(-kB * r[..., None]))
+    alpha = np.ones((20, 30))
+    alpha[:5] = 0.0
+    r[5, :] = 0.0  # no range: not identifiable, filled
+    m = coefficients_from_maps(A, B, r, binf, alpha)
+    assert np.abs(m.k_A[6:] - kA).max() < 1e-5 and np.abs(m.k_B[6:] - kB).max() < 1e-5
+    assert np.abs(m.k_A - kA).max() < 1e-5  # filled pixels take their neighbours' (here equal) values
+    sat = coefficients_from_maps(np.zeros((3, 3, 3)), np.ones((3, 3, 3)), np.ones((3, 3)), binf)
+    assert np.isfinite(sat.k_A).all() and np.isfinite(sat.k_B).all() and (sat.k_A >= 0).all()
