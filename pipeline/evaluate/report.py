@@ -219,8 +219,8 @@ def original_pictures(job: Path, report: dict) -> list[tuple[str, list[tuple[str
         w = min(W, SHOWN_WIDTH)
         h = max(1, round(H * w / W))
 
-        def small(img):
-            return img if (H, W) == (h, w) else resize_area_to(img, (h, w))
+        def small(img, h=h, w=w):
+            return img if img.shape[:2] == (h, w) else resize_area_to(img, (h, w))
 
         y, x = _crop_corner(photo, conf, CROP)
         cells = [(f"photo ({W}x{H})", image_png(small(photo))), ("restored", image_png(small(restored)))]

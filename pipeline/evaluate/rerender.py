@@ -110,9 +110,7 @@ def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "a
 
 def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, max_gain: float, fmt: str) -> int:
     """The input photos of ``views`` de-watered into ``out/restored`` and ``out/confidence``; their count."""
-    from pipeline.restore.frame import restore_file
-    from pipeline.restore.stage import NOTHING_TO_RESTORE
-    from pipeline.restore.views import lens_cameras, rendered_view
+    from pipeline.restore.views import NOTHING_TO_RESTORE, lens_cameras, rendered_view, restore_photo
     from pipeline.train.model import model_from_state
 
     model = model_from_state(state)
@@ -121,8 +119,8 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
     layout = JobLayout(job)
     lenses = lens_cameras(layout.scene)
     for v in views:  # out/ gets the job's own folder names for them
-        restore_file(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
-                     lenses[v.name], rendered_view(model, v), max_gain=max_gain, fmt=fmt)
+        restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
+                      lenses[v.name], rendered_view(model, v), max_gain=max_gain, fmt=fmt, space=model.colour_space)
     return len(views)
 
 

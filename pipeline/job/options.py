@@ -52,9 +52,11 @@ class JobOptions:
         if self.mode not in JOB_MODES:
             raise ValueError(f"unknown mode {self.mode!r}; choose from {', '.join(JOB_MODES)}")
         if self.colour_space not in COLOUR_SPACES:
-            raise ValueError(f"unknown colour_space {self.colour_space!r}; choose from {', '.join(COLOUR_SPACES)}")
+            raise ValueError(f"unknown colour_space {self.colour_space!r}; choose from "
+                             f"{', '.join(COLOUR_SPACES)}")
         if self.restore_format not in RESTORE_FORMATS:
-            raise ValueError(f"unknown restore_format {self.restore_format!r}; choose from {', '.join(RESTORE_FORMATS)}")
+            raise ValueError(f"unknown restore_format {self.restore_format!r}; choose from "
+                             f"{', '.join(RESTORE_FORMATS)}")
         if not self.max_gain >= 1.0:
             raise ValueError(f"max_gain is a gain cap >= 1, got {self.max_gain}")
 

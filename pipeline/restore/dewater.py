@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.restore._colour import linear_to_srgb, srgb_to_linear
 from pipeline.restore.records import MediumMaps
+from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
 
 SPACES = ("srgb", "linear")
 

@@ -9,9 +9,6 @@ from pathlib import Path
 from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions, StageContext
 
-# What a 3dgs job's report and restore.json say: that mode models no water.
-NOTHING_TO_RESTORE = "mode 3dgs models no water: nothing was removed, so there are no restored photos"
-
 
 def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     """One photo at a time (a frame is restored in row bands: bounded memory at any size); cancellable between
@@ -23,8 +20,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     from pipeline.job.markers import atomic_write_json
     from pipeline.job.options import JobCancelled
-    from pipeline.restore.frame import restore_file
-    from pipeline.restore.views import lens_cameras, rendered_view
+    from pipeline.restore.views import NOTHING_TO_RESTORE, lens_cameras, rendered_view, restore_photo
     from pipeline.scene.images import list_images
     from pipeline.train.checkpoint import load_checkpoint
     from pipeline.train.model import model_from_state
@@ -52,12 +48,12 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
             raise JobCancelled(f"cancelled during restore after {k} of {len(views)} photos")
         t0 = time.perf_counter()
         src = layout.images / view.name
-        stats = restore_file(src, layout.restored, layout.confidence, lenses[view.name],
-                             rendered_view(model, view), max_gain=opts.max_gain, fmt=opts.restore_format)
+        stats = restore_photo(src, layout.restored, layout.confidence, lenses[view.name], rendered_view(model, view),
+                              max_gain=opts.max_gain, fmt=opts.restore_format, space=model.colour_space)
         per_view.append({"name": view.name, **stats, "seconds": round(time.perf_counter() - t0, 3)})
         ctx.on_progress("restore", (k + 1) / len(views), f"restored {k + 1}/{len(views)} photos")
     registered = {v.name for v in views}
-    res = {"mode": model.mode, "restored": len(per_view), "max_gain": opts.max_gain,
+    res = {"mode": model.mode, "restored": len(per_view), "max_gain": opts.max_gain, "colour_space": model.colour_space,
            "format": opts.restore_format, "seconds": round(time.perf_counter() - t_all, 3), "views": per_view,
            "not_restored": [{"name": n, "reason": "SfM did not register it (no pose)"}
                             for n in sorted(photos - registered)]}

@@ -17,6 +17,9 @@ from pipeline.scene.records import View, ray_length_factor
 from pipeline.train.model import TrainedModel
 from pipeline.train.render import render_outputs
 
+# What a 3dgs job's report and restore.json say: that mode models no water.
+NOTHING_TO_RESTORE = "mode 3dgs models no water: nothing was removed, so there are no restored photos"
+
 
 class LensModelError(FileNotFoundError):
     """The job has no model of its photos' lens (SfM's model before undistortion)."""
@@ -45,7 +48,7 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto") -> Ren
 
     medium = model.medium
     if medium is None:
-        raise ValueError("mode 3dgs models no water: there is nothing to restore")
+        raise ValueError(NOTHING_TO_RESTORE)
     out = render_outputs(model.gaussians, view, medium, model.sh_degree, backend, model.background)
     binf = medium.B_inf.detach().double().numpy()
     if medium.mode == "homogeneous":
@@ -55,6 +58,24 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto") -> Ren
     else:
         r = out.depth * ray_length_factor(view.camera)
         assert out.A is not None and out.B is not None
-        k_A, k_B = coefficients_from_maps(out.A, out.B, r, binf)
-        maps = MediumMaps(k_A, k_B, binf)
+        maps = coefficients_from_maps(out.A, out.B, r, binf, out.alpha)
     return RenderedView(view.camera, out.depth.astype(np.float32), out.alpha.astype(np.float32), maps)
+
+
+def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: LensCamera, view: RenderedView, *,
+                  max_gain: float, fmt: str, space: str) -> dict:
+    """One photo de-watered (:func:`pipeline.restore.frame.restore_file`): the restored image into
+    ``restored_dir`` (the photo's name and format, or 16-bit TIFF for ``fmt`` "tiff16"), its confidence map
+    ``<stem>.png`` and surface mask ``<stem>_surface.png`` into ``confidence_dir``. Returns what restore.json
+    records of it."""
+    from pipeline.restore.frame import RestoreOptions, restore_file
+
+    res = restore_file(src, lens, view, restored_dir, RestoreOptions(max_gain=max_gain, space=space),
+                       tiff16=fmt == "tiff16")
+    confidence_dir.mkdir(parents=True, exist_ok=True)
+    res.paths["confidence"].replace(confidence_dir / f"{src.stem}.png")
+    res.paths["surface"].replace(confidence_dir / f"{src.stem}_surface.png")
+    n = lens.width * lens.height
+    return {"file": res.paths["J"].name, "width": lens.width, "height": lens.height,
+            "surface": round(res.surface_pixels / n, 5), "clipped": round(res.clipped / n, 5),
+            "camera": lens.model}

@@ -20,7 +20,8 @@ LAYOUT_FILE = Path("pipeline/job/layout.py")
 # The job folder's file names (the list, and what JobLayout adds: asserted to stay in it below).
 FILE_NAMES = ("job.json", "ingest.json", "classify.json", "water.json", "latest.pt", "train.json", "selection.json",
               "recovery.json", "collapsed.pt", "evaluate.json", "reconstruction.ply", "report.json", "report.html",
-              "speed_vs_error.png", ".stages", ".artifacts.json", "manifest.json", "log.txt", "source.json", "restore.json")
+              "speed_vs_error.png", ".stages", ".artifacts.json", "manifest.json", "log.txt", "source.json",
+              "restore.json")
 # Folders whose names are ordinary words elsewhere ("train" the stage, "input" a report key): spelled as a path
 # (``x / "train"``, ``"train/..."``) they are the job folder's.
 FOLDER_NAMES = ("train", "output", "evaluate", "input", "upload", "true_camera", "renders", "confidence")
