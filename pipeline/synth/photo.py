@@ -255,6 +255,14 @@ def photo_scene(cfg: PhotoSynthConfig, world: PhotoWorld | None = None, companio
                 ) -> tuple[PhotoWorld, list[SynthView], list[SynthView] | None]:
     """Every view and, with distortion (and ``companions``), its pinhole companion (same pose, ideal PINHOLE
     lens, own noise stream). Returns (world, views, pinhole views or None)."""
+    world, rendered = iter_photo_scene(cfg, world, companions)
+    pairs = list(rendered)
+    pinhole = [p[1] for p in pairs if p[1] is not None]
+    return world, [p[0] for p in pairs], (pinhole if pinhole else None)
+
+
+def iter_photo_scene(cfg: PhotoSynthConfig, world: PhotoWorld | None = None, companions: bool = True):
+    """(world, iterator of (view, pinhole companion or None)), rendered one view at a time (bounded memory)."""
     if cfg.preset not in PHOTO_WATER_PRESETS:
         raise ValueError(f"unknown water preset {cfg.preset!r}; choose from {sorted(PHOTO_WATER_PRESETS)}")
     if cfg.supersample < 1:
@@ -271,20 +279,24 @@ def photo_scene(cfg: PhotoSynthConfig, world: PhotoWorld | None = None, companio
     lenses = [(distortion, np.random.default_rng([cfg.seed, 404]))]
     if companions and is_distorted(distortion):
         lenses.append((NO_DISTORTION, np.random.default_rng([cfg.seed, 405])))
-    out: list[list[SynthView]] = [[] for _ in lenses]
-    for i, (R, c) in enumerate(path):
-        view = View(name=f"frame_{i:04d}.png", camera=cam, R=R, t=-R @ c)
-        for (lens, noise_rng), dest in zip(lenses, out):
-            J, z, img = render_view(world, view, s, water, cfg.ambient, lens, cfg.water_space)
-            n_far = int((z >= FAR).sum())
-            if n_far:
-                log.warning("%s: %d pixels whose rays hit no seabed (depth %g)", view.name, n_far, FAR)
-            img = add_sensor_noise(img, cfg.noise_gain, cfg.noise_floor, noise_rng)
-            if cfg.water_space == "linear":
-                J, img = linear_to_srgb(J), linear_to_srgb(img)
-            dest.append(SynthView(view, J, z, img))
-        log.debug("rendered %s", view.name)
-    return world, out[0], (out[1] if len(out) > 1 else None)
+
+    def views():
+        for i, (R, c) in enumerate(path):
+            view = View(name=f"frame_{i:04d}.png", camera=cam, R=R, t=-R @ c)
+            out = []
+            for lens, noise_rng in lenses:
+                J, z, img = render_view(world, view, s, water, cfg.ambient, lens, cfg.water_space)
+                n_far = int((z >= FAR).sum())
+                if n_far:
+                    log.warning("%s: %d pixels whose rays hit no seabed (depth %g)", view.name, n_far, FAR)
+                img = add_sensor_noise(img, cfg.noise_gain, cfg.noise_floor, noise_rng)
+                if cfg.water_space == "linear":
+                    J, img = linear_to_srgb(J), linear_to_srgb(img)
+                out.append(SynthView(view, J, z, img))
+            log.debug("rendered %s", view.name)
+            yield out[0], (out[1] if len(out) > 1 else None)
+
+    return world, views()
 
 
 def _distortion(value) -> tuple[float, float]:
@@ -297,10 +309,11 @@ def _distortion(value) -> tuple[float, float]:
 def generate_photo_scene(cfg: PhotoSynthConfig, out_dir: str | Path) -> Path:
     """Render a photo-family scene and write it to ``out_dir`` (layout in the module docstring)."""
     t0 = time.perf_counter()
-    world, views, pinhole = photo_scene(cfg)
+    world, rendered = iter_photo_scene(cfg)
     out = Path(out_dir)
     distortion = _distortion(cfg.distortion)
-    write_scene_files(out, views, pinhole, distortion, cfg.n_points, np.random.default_rng([cfg.seed, 505]))
+    views = write_scene_files(out, rendered, cfg.views, distortion, cfg.n_points,
+                              np.random.default_rng([cfg.seed, 505]))
     water = PHOTO_WATER_PRESETS[cfg.preset]
     centres = [sv.view.center for sv in views]
     meta = {

@@ -147,6 +147,15 @@ def synth_scene(cfg: SynthConfig, companions: bool = True
                 ) -> tuple[World, list[SynthView], list[SynthView] | None]:
     """Render every view; with distortion (and ``companions``) also its pinhole companion (same pose, ideal
     PINHOLE lens, own noise stream). Returns (world, views, pinhole views or None)."""
+    world, rendered = iter_scene(cfg, companions)
+    pairs = list(rendered)
+    views = [p[0] for p in pairs]
+    pinhole = [p[1] for p in pairs if p[1] is not None]
+    return world, views, (pinhole if pinhole else None)
+
+
+def iter_scene(cfg: SynthConfig, companions: bool = True):
+    """(world, iterator of (view, pinhole companion or None)), rendered one view at a time (bounded memory)."""
     if cfg.preset not in WATER_PRESETS:
         raise ValueError(f"unknown water preset {cfg.preset!r}; choose from {sorted(WATER_PRESETS)}")
     distortion = _distortion(cfg.distortion)
@@ -159,15 +168,20 @@ def synth_scene(cfg: SynthConfig, companions: bool = True
     lenses = [(distortion, pixel_ray_factor(cam, distortion), np.random.default_rng(cfg.seed + 7919))]
     if companions and is_distorted(distortion):
         lenses.append((NO_DISTORTION, pixel_ray_factor(cam, NO_DISTORTION), np.random.default_rng([cfg.seed, 7920])))
-    out: list[list[SynthView]] = [[] for _ in lenses]
-    for i, (R, c) in enumerate(survey_path(cfg.views, cfg.path, cfg.altitude, rng)):
-        view = View(name=f"frame_{i:04d}.png", camera=cam, R=R, t=-R @ c)
-        for (lens, ray, noise_rng), dest in zip(lenses, out):
-            J, z = render(world, view, s, lens)
-            img = water_image(J, z * ray, water, cfg.water_space, cfg.noise_std, noise_rng)
-            dest.append(SynthView(view, J, z, img))
-        log.debug("rendered %s", view.name)
-    return world, out[0], (out[1] if len(out) > 1 else None)
+    poses = survey_path(cfg.views, cfg.path, cfg.altitude, rng)
+
+    def views():
+        for i, (R, c) in enumerate(poses):
+            view = View(name=f"frame_{i:04d}.png", camera=cam, R=R, t=-R @ c)
+            out = []
+            for lens, ray, noise_rng in lenses:
+                J, z = render(world, view, s, lens)
+                out.append(SynthView(view, J, z, water_image(J, z * ray, water, cfg.water_space, cfg.noise_std,
+                                                             noise_rng)))
+            log.debug("rendered %s", view.name)
+            yield out[0], (out[1] if len(out) > 1 else None)
+
+    return world, views()
 
 
 def _distortion(value) -> tuple[float, float]:
@@ -180,9 +194,9 @@ def _distortion(value) -> tuple[float, float]:
 def generate_scene(cfg: SynthConfig, out_dir: str | Path) -> Path:
     """Render a scene and write it to ``out_dir`` (layout in the module docstring). Returns the folder."""
     out = Path(out_dir)
-    world, views, pinhole = synth_scene(cfg)
+    world, rendered = iter_scene(cfg)
     distortion = _distortion(cfg.distortion)
-    write_scene_files(out, views, pinhole, distortion, cfg.n_points, np.random.default_rng(cfg.seed + 1))
+    views = write_scene_files(out, rendered, cfg.views, distortion, cfg.n_points, np.random.default_rng(cfg.seed + 1))
     water = WATER_PRESETS[cfg.preset]
     meta = {
         "preset": cfg.preset,
@@ -212,19 +226,40 @@ def lens_and_space_meta(distortion: tuple[float, float], water_space: str, super
     }
 
 
-def write_scene_files(out: Path, views: list[SynthView], pinhole: list[SynthView] | None,
-                      distortion: tuple[float, float], n_points: int, rng: np.random.Generator) -> None:
-    """images/, clean/, depth/, sparse_gt/ of ``views`` (lens ``distortion``) and, when given, pinhole/ with
-    the companions (PINHOLE model, the same points observed through the ideal lens)."""
-    points, colors, tracks = sample_surface_points(views, n_points, rng, distortion)
-    cam = views[0].view.camera if views else None
-    _write_views(out, views)
-    write_colmap_text(out / "sparse_gt", [sv.view for sv in views], points, colors, tracks,
-                      original_camera(cam, distortion) if cam else None)
-    if pinhole is not None:
-        _write_views(out / PINHOLE_DIR, pinhole)
-        write_colmap_text(out / PINHOLE_DIR / "sparse", [sv.view for sv in pinhole], points, colors,
-                          observe_points(points, pinhole, NO_DISTORTION))
+def write_scene_files(out: Path, rendered, n_views: int, distortion: tuple[float, float], n_points: int,
+                      rng: np.random.Generator) -> list[SynthView]:
+    """Write each (view, pinhole companion or None) of ``rendered`` as it comes (images/, clean/, depth/; the
+    companions under pinhole/), sampling its surface points on the way, then sparse_gt/ (lens ``distortion``)
+    and pinhole/sparse/ (PINHOLE, the same points observed through the ideal lens). Only the depth maps are
+    kept; returns the views with J and image dropped (empty arrays)."""
+    per_view = math.ceil(n_points / n_views) if n_points > 0 and n_views > 0 else 0
+    kept, kept_pin, pts, cols = [], [], [], []
+    for sv, pin in rendered:
+        _write_views(out, [sv])
+        if pin is not None:
+            _write_views(out / PINHOLE_DIR, [pin])
+            kept_pin.append(_depth_only(pin))
+        if per_view:
+            p, c = _sample_view_points(sv, per_view, rng, distortion)
+            pts.append(p)
+            cols.append(c)
+        kept.append(_depth_only(sv))
+    if pts:
+        points, colors = np.concatenate(pts)[:n_points], np.concatenate(cols)[:n_points]
+    else:
+        points, colors = np.zeros((0, 3)), np.zeros((0, 3))
+    cam = kept[0].view.camera if kept else None
+    write_colmap_text(out / "sparse_gt", [sv.view for sv in kept], points, colors,
+                      observe_points(points, kept, distortion), original_camera(cam, distortion) if cam else None)
+    if kept_pin:
+        write_colmap_text(out / PINHOLE_DIR / "sparse", [sv.view for sv in kept_pin], points, colors,
+                          observe_points(points, kept_pin, NO_DISTORTION))
+    return kept
+
+
+def _depth_only(sv: SynthView) -> SynthView:
+    empty = np.zeros((0, 0, 3))
+    return SynthView(sv.view, empty, sv.depth, empty)
 
 
 def _write_views(out: Path, views: list[SynthView]) -> None:
@@ -253,21 +288,26 @@ def sample_surface_points(views: list[SynthView], n: int, rng: np.random.Generat
     if n <= 0 or not views:
         return np.zeros((0, 3)), np.zeros((0, 3)), []
     per_view = math.ceil(n / len(views))
-    pts, cols = [], []
-    for sv in views:
-        cam = sv.view.camera
-        ys = rng.integers(0, cam.height, per_view)
-        xs = rng.integers(0, cam.width, per_view)
-        z = sv.depth[ys, xs]
-        ok = z < FAR * 0.5
-        xn, yn = (xs[ok] + 0.5 - cam.cx) / cam.fx, (ys[ok] + 0.5 - cam.cy) / cam.fy
-        if is_distorted(distortion):
-            xn, yn = (a.numpy() for a in undistort_normalized(torch.as_tensor(xn), torch.as_tensor(yn), distortion))
-        xc = np.stack([xn * z[ok], yn * z[ok], z[ok]], 1)
-        pts.append((xc - sv.view.t) @ sv.view.R)  # R^T (x_cam − t)
-        cols.append(sv.J[ys[ok], xs[ok]])
-    points, colors = np.concatenate(pts)[:n], np.concatenate(cols)[:n]
+    sampled = [_sample_view_points(sv, per_view, rng, distortion) for sv in views]
+    points = np.concatenate([p for p, _ in sampled])[:n]
+    colors = np.concatenate([c for _, c in sampled])[:n]
     return points, colors, observe_points(points, views, distortion)
+
+
+def _sample_view_points(sv: SynthView, per_view: int, rng: np.random.Generator, distortion: tuple[float, float]
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """``per_view`` random pixels of one view back-projected to world points (rays that hit nothing dropped)
+    with their J colours. ([K, 3], [K, 3])"""
+    cam = sv.view.camera
+    ys = rng.integers(0, cam.height, per_view)
+    xs = rng.integers(0, cam.width, per_view)
+    z = sv.depth[ys, xs]
+    ok = z < FAR * 0.5
+    xn, yn = (xs[ok] + 0.5 - cam.cx) / cam.fx, (ys[ok] + 0.5 - cam.cy) / cam.fy
+    if is_distorted(distortion):
+        xn, yn = (a.numpy() for a in undistort_normalized(torch.as_tensor(xn), torch.as_tensor(yn), distortion))
+    xc = np.stack([xn * z[ok], yn * z[ok], z[ok]], 1)
+    return (xc - sv.view.t) @ sv.view.R, sv.J[ys[ok], xs[ok]]  # R^T (x_cam − t)
 
 
 def observe_points(points: np.ndarray, views: list[SynthView], distortion: tuple[float, float]
