@@ -311,9 +311,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="procedural: bright procedural seabed, water per pixel (pipeline.synth.procedural); photo: "
                         "seabed from real photographs, water per supersample (pipeline.synth.photo)")
     s.add_argument("--distortion", type=_distortion, default=(0.0, 0.0), metavar="K1,K2",
-                   help="radial lens distortion (COLMAP RADIAL k1,k2), e.g. --distortion=-0.15,0 (with =: a leading minus "
-                        "reads as an option otherwise); pinhole companions go to "
-                        "pinhole/ (pipeline.synth.lens)")
+                   help="radial lens distortion (COLMAP RADIAL k1,k2), e.g. --distortion=-0.15,0 (with =: a "
+                        "leading minus reads as an option otherwise); pinhole companions go to pinhole/ "
+                        "(pipeline.synth.lens)")
     s.add_argument("--water-space", default="srgb", choices=["srgb", "linear"],
                    help="srgb: water applied to J as written; linear: to sRGB-decoded J, re-encoded after")
     s.set_defaults(func=cmd_synth)

@@ -19,10 +19,10 @@ import pytest
 import torch
 
 from pipeline.config import SynthConfig
+from pipeline.scene.colmap import qvec_to_rotmat
 from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
-from pipeline.scene.colmap import qvec_to_rotmat
 from pipeline.synth.ground_truth import is_generated_scene, load_ground_truth
 from pipeline.synth.lens import pixel_ray_factor, undistort_normalized
 from pipeline.synth.photo import PhotoSynthConfig, default_textures_dir, generate_photo_scene
@@ -48,7 +48,8 @@ def _read_model(sparse: Path):
         f = head.split()
         q, t = np.array(f[1:5], float), np.array(f[5:8], float)
         o = obs.split()
-        images[f[9]] = (qvec_to_rotmat(q), t, [(float(o[i]), float(o[i + 1]), int(o[i + 2])) for i in range(0, len(o), 3)])
+        obs_list = [(float(o[i]), float(o[i + 1]), int(o[i + 2])) for i in range(0, len(o), 3)]
+        images[f[9]] = (qvec_to_rotmat(q), t, obs_list)
     points = {int(f[0]): np.array(f[1:4], float) for f in
               (ln.split() for ln in (sparse / "points3D.txt").read_text().splitlines() if not ln.startswith("#"))}
     return cam, images, points
@@ -169,7 +170,8 @@ def test_default_output_is_byte_identical_to_before(tmp_path):
 
 def test_undistortion_matches_pycolmap():
     cam = make_camera(CFG)
-    pc = pycolmap.Camera(model="RADIAL", width=cam.width, height=cam.height, params=[cam.fx, cam.cx, cam.cy, -0.15, 0.03])
+    pc = pycolmap.Camera(model="RADIAL", width=cam.width, height=cam.height,
+                         params=[cam.fx, cam.cx, cam.cy, -0.15, 0.03])
     uv = np.random.default_rng(0).uniform([0, 0], [cam.width, cam.height], (500, 2))
     xn, yn = undistort_normalized(torch.as_tensor((uv[:, 0] - cam.cx) / cam.fx),
                                   torch.as_tensor((uv[:, 1] - cam.cy) / cam.fy), (-0.15, 0.03))
