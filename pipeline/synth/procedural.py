@@ -219,7 +219,9 @@ def lens_and_space_meta(distortion: tuple[float, float], water_space: str, super
     return {
         "camera_model": "RADIAL" if is_distorted(distortion) else "PINHOLE",
         "distortion": {"k1": distortion[0], "k2": distortion[1],
-                       "note": "COLMAP RADIAL (f, cx, cy, k1, k2); pinhole companions in pinhole/"}
+                       "note": "COLMAP RADIAL (f, cx, cy, k1, k2); images/clean/depth are in the distorted "
+                               "geometry, the ray factor is sqrt(1 + x^2 + y^2) of each pixel's undistorted "
+                               "normalised coordinates; pinhole companions in pinhole/"}
         if is_distorted(distortion) else None,
         "water_space": water_space,
         "supersample_used": supersample,
