@@ -138,8 +138,8 @@ def test_linear_water_holds_in_linear_light(scene):
         r = (np.load(scene / "depth" / f"{Path(name).stem}.npy") * ray)[..., None]
         predicted = srgb_to_linear(J) * np.exp(-bd * r) + binf * (1 - np.exp(-bb * r))
         err = np.abs(linear_to_srgb(predicted) - I)
-        # 8-bit rounding of I (0.5 DN) plus J's (<= 0.5 DN through the slope of the chain)
-        assert err.max() < 1.5 / 255, err.max() * 255
+        # 8-bit rounding of I and of J; measured max 0.85 DN, mean 0.28 DN (the sRGB-space model: ~31 DN off)
+        assert err.max() < 1.0 / 255, err.max() * 255
         # the same in linear light: not the sRGB-space model
         wrong = np.abs(np.clip(J * np.exp(-bd * r) + binf * (1 - np.exp(-bb * r)), 0, 1) - I)
         assert wrong.mean() > 10 * err.mean()
