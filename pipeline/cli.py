@@ -34,6 +34,14 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _distortion(text: str) -> tuple[float, float]:
+    try:
+        k1, k2 = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"distortion must look like -0.15,0.02 (k1,k2), got {text!r}") from None
+    return k1, k2
+
+
 def _positive(text: str) -> int:
     try:
         v = int(text)
@@ -55,10 +63,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
             print("dualphys synth: --path applies to the procedural family only (the photo family flies its "
                   "own lawnmower + oblique survey)", file=sys.stderr)
             return 2
-        photo = PhotoSynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed)
+        photo = PhotoSynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed,
+                                 distortion=args.distortion, water_space=args.water_space)
         try:
             out = generate_photo_scene(photo, args.out)
-        except TextureFolderError as e:
+        except (TextureFolderError, ValueError) as e:
             print(f"dualphys synth: {e}", file=sys.stderr)
             return 1
         views, preset = photo.views, photo.preset
@@ -66,8 +75,13 @@ def cmd_synth(args: argparse.Namespace) -> int:
         from pipeline.config import SynthConfig
         from pipeline.synth.procedural import generate_scene
 
-        cfg = SynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed, path=args.path)
-        out = generate_scene(cfg, args.out)
+        cfg = SynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed, path=args.path,
+                          distortion=args.distortion, water_space=args.water_space)
+        try:
+            out = generate_scene(cfg, args.out)
+        except ValueError as e:
+            print(f"dualphys synth: {e}", file=sys.stderr)
+            return 1
         views, preset = cfg.views, cfg.preset
     print(json.dumps({"out": str(out), "family": args.family, "views": views, "preset": preset,
                       "seconds": round(time.perf_counter() - t0, 2)}))
@@ -299,6 +313,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--family", default="procedural", choices=["procedural", "photo"],
                    help="procedural: bright procedural seabed, water per pixel (pipeline.synth.procedural); photo: "
                         "seabed from real photographs, water per supersample (pipeline.synth.photo)")
+    s.add_argument("--distortion", type=_distortion, default=(0.0, 0.0), metavar="K1,K2",
+                   help="radial lens distortion (COLMAP RADIAL k1,k2), e.g. --distortion=-0.15,0 (with =: a "
+                        "leading minus reads as an option otherwise); pinhole companions go to pinhole/ "
+                        "(pipeline.synth.lens)")
+    s.add_argument("--water-space", default="srgb", choices=["srgb", "linear"],
+                   help="srgb: water applied to J as written; linear: to sRGB-decoded J, re-encoded after")
     s.set_defaults(func=cmd_synth)
 
     s = sub.add_parser("sfm", help="structure from motion: images -> posed PINHOLE cameras + sparse points")

@@ -35,6 +35,12 @@ class SynthConfig:
     n_corals: int = 10
     n_points: int = 3000  # true surface points written to sparse_gt/points3D.txt
     noise_std: float = 0.004  # sensor noise (std in [0, 1] units) added to the underwater image; 0 disables
+    # Radial lens distortion (k1, k2) of COLMAP's RADIAL model (pipeline.synth.lens); (0, 0) = PINHOLE. When set,
+    # images/, clean/, depth/ and sparse_gt/ are in the distorted geometry and pinhole/ holds pinhole companions.
+    distortion: tuple[float, float] = (0.0, 0.0)
+    # "srgb": the water acts on J as written (8-bit-style values); "linear": on sRGB-decoded J, re-encoded after
+    water_space: Literal["srgb", "linear"] = "srgb"
+    max_rays_per_view: int = 4_000_000  # supersample is lowered until width·height·s² fits (large sizes)
 
 
 @dataclass

@@ -7,6 +7,13 @@ unrelated to the classifier's decision in a job folder). A job finds it either t
 ``JobOptions.ground_truth`` (the scene folder) or, when that is unset, because its source is a folder named
 ``images`` inside such a scene.
 Nothing else counts as ground truth: a folder must carry the generator's ``water.json`` and ``clean/``.
+
+A scene generated with lens distortion (``pipeline.synth.lens``) records images/, clean/, depth/ in the
+distorted geometry of the true RADIAL camera (sparse_gt/) and holds pinhole companions in ``pinhole/`` (images/,
+clean/, depth/, sparse/: the same views rendered through the ideal PINHOLE lens). :class:`GroundTruth` then reads
+its pinhole-geometry truth (``scene``, ``clean``, ``depth``, ``seen_by``) from ``pinhole/``; the full-resolution
+truth in the recorded geometry is ``original_camera``, ``clean_original`` and ``depth_original``. For an
+undistorted scene both are the same files and camera.
 """
 
 from __future__ import annotations
@@ -19,9 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.scene.images import resize_area_to
+from pipeline.scene.images import read_image, resize_area_to
 from pipeline.scene.loader import load_scene, load_view_image
 from pipeline.scene.records import Scene, View
+from pipeline.synth.lens import OriginalCamera
+from pipeline.synth.procedural import PINHOLE_DIR
 from pipeline.synth.water import TRUE_WATER_FILE
 
 log = logging.getLogger(__name__)
@@ -38,9 +47,28 @@ class GroundTruthError(ValueError):
 class GroundTruth:
     """A generated scene's truth."""
 
-    root: Path
+    root: Path  # the pinhole-geometry truth (images/, clean/, depth/): the scene folder, or its pinhole/
     scene: Scene  # the true PINHOLE cameras (world in metres), views named as the images
     water: dict  # water.json: preset, beta_D, beta_B (1/m), B_inf, generator config
+    scene_root: Path | None = None  # the generated scene folder (the recorded geometry); None = root
+
+    @property
+    def original_root(self) -> Path:
+        """The scene folder whose images/, clean/, depth/ are in the true (possibly distorted) geometry."""
+        return self.scene_root or self.root
+
+    def original_camera(self, name: str) -> OriginalCamera:
+        """The true camera of view ``name`` as recorded (sparse_gt/): RADIAL for a distorted scene, else
+        PINHOLE; params in COLMAP order."""
+        return _read_text_cameras(self.original_root / "sparse_gt")[name]
+
+    def clean_original(self, name: str) -> np.ndarray:
+        """The true clean radiance of view ``name`` at full resolution in the recorded geometry.  # [H, W, 3]"""
+        return read_image(self.original_root / "clean" / name)
+
+    def depth_original(self, name: str) -> np.ndarray:
+        """True camera-space z (metres) of view ``name`` at full resolution in the recorded geometry.  # [H, W]"""
+        return np.load(self.original_root / "depth" / f"{Path(name).stem}.npy")
 
     def clean(self, view: View) -> np.ndarray:
         """The true clean radiance of ``view.name`` at ``view.camera``'s size (area-averaged).  # [h, w, 3]"""
@@ -115,10 +143,30 @@ def find_ground_truth(source: str | Path | None, explicit: str | Path | None = N
 
 
 def load_ground_truth(root: str | Path) -> GroundTruth:
+    """The truth of generated scene ``root``; a distorted scene's pinhole-geometry truth comes from pinhole/."""
     root = Path(root)
     if not is_generated_scene(root):
         raise GroundTruthError(f"{root} is not a generated scene folder")
-    return GroundTruth(root, load_scene(root), json.loads((root / TRUE_WATER_FILE).read_text()))
+    water = json.loads((root / TRUE_WATER_FILE).read_text())
+    pinhole = root / PINHOLE_DIR
+    if pinhole.is_dir():
+        return GroundTruth(pinhole, load_scene(pinhole), water, scene_root=root)
+    return GroundTruth(root, load_scene(root), water, scene_root=root)
+
+
+def _read_text_cameras(sparse: Path) -> dict[str, OriginalCamera]:
+    """View name -> its camera, from a generator-written COLMAP text model (cameras.txt, images.txt)."""
+    cams: dict[int, OriginalCamera] = {}
+    for line in (sparse / "cameras.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            cid, model, w, h, *params = line.split()
+            cams[int(cid)] = OriginalCamera(model, int(w), int(h), tuple(float(p) for p in params))
+    lines = [ln for ln in (sparse / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+    out = {}
+    for line in lines[0::2]:  # an image line, then its (possibly empty) points line
+        f = line.split()
+        out[f[9]] = cams[int(f[8])]
+    return out
 
 
 __all__ = ["GroundTruth", "GroundTruthError", "find_ground_truth", "is_generated_scene", "load_ground_truth"]

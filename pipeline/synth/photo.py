@@ -34,6 +34,13 @@ absorption climbs steeply, so its β_D exceeds K_d(600 nm)); Akkaynak & Treibitz
   B∞ = (0.150, 0.320, 0.210).
 - ``none``: no water (I = J).
 
+Lens distortion (``distortion`` = (k1, k2), COLMAP ``RADIAL``, :mod:`.lens`) and pinhole companions in
+``pinhole/`` work as in :mod:`.procedural`. Water space: "srgb" applies the water to the albedo-shaded J as it is;
+"linear" decodes each supersample's J with the sRGB EOTF (:mod:`pipeline.scene.colour`), applies the water and
+the box filter in linear light (a sensor integrates light linearly), adds the sensor noise to the linear image
+(noise always goes on the box-filtered water image, before clipping), then sRGB-encodes both the image and the
+clean J (clean/ = encode(box(decode(J_s)))).
+
 Sensor noise defaults: a = 1.5e-4, b = 0.002 (in [0, 1] units): std ≈ 0.0050 at I = 0.15 and ≈ 0.0072 at
 I = 0.33, i.e. 1.3–1.8 DN at 8 bits, a typical machine-vision camera at moderate gain.
 """
@@ -52,11 +59,21 @@ from typing import Literal
 import numpy as np
 import torch
 
+from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
 from pipeline.scene.records import Camera, View
+from pipeline.synth.lens import is_distorted, original_camera, pixel_directions, row_bands
 from pipeline.synth.photo_path import photo_survey_path
 from pipeline.synth.photo_texture import Mosaic, PhotoBox, PhotoSet, load_photos, make_mosaic, mosaic_albedo
 from pipeline.synth.photo_world import Terrain, make_terrain, march, normals
-from pipeline.synth.procedural import FAR, SynthView, sample_surface_points, write_colmap_text
+from pipeline.synth.procedural import (
+    BAND_RAYS,
+    FAR,
+    NO_DISTORTION,
+    SynthView,
+    effective_supersample,
+    lens_and_space_meta,
+    write_scene_files,
+)
 from pipeline.synth.water import TRUE_WATER_FILE, WaterParams
 
 log = logging.getLogger(__name__)
@@ -124,6 +141,11 @@ class PhotoSynthConfig:
     noise_gain: float = 1.5e-4  # a: shot-noise variance per unit intensity ([0, 1] units)
     noise_floor: float = 0.002  # b: read-noise std ([0, 1] units); a = b = 0 disables noise
     n_points: int = 3000  # true surface points written to sparse_gt/points3D.txt
+    # Radial lens distortion (k1, k2) of COLMAP's RADIAL model (pipeline.synth.lens); (0, 0) = PINHOLE. When set,
+    # images/, clean/, depth/ and sparse_gt/ are in the distorted geometry and pinhole/ holds pinhole companions.
+    distortion: tuple[float, float] = (0.0, 0.0)
+    water_space: Literal["srgb", "linear"] = "srgb"  # "linear": water applied to sRGB-decoded J, then re-encoded
+    max_rays_per_view: int = 4_000_000  # supersample is lowered until width·height·s² fits (large sizes)
 
 
 @dataclass
@@ -160,15 +182,28 @@ def _water_arrays(water: WaterParams) -> tuple[torch.Tensor, torch.Tensor, torch
     return tuple(torch.tensor(v, dtype=F64) for v in (water.beta_D, water.beta_B, water.B_inf))  # type: ignore
 
 
-def render_view(world: PhotoWorld, view: View, supersample: int, water: WaterParams, ambient: float
+def render_view(world: PhotoWorld, view: View, supersample: int, water: WaterParams, ambient: float,
+                distortion: tuple[float, float] = NO_DISTORTION, water_space: str = "srgb"
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Clean radiance J [H, W, 3], camera-space depth z [H, W] (FAR where any supersample misses) and the
-    noiseless underwater image [H, W, 3] of one view; water applied per supersample, then box filtered."""
+    noiseless underwater image [H, W, 3] of one view through the lens ``distortion``; water applied per
+    supersample, then box filtered. With ``water_space`` "linear" J and the image are returned in linear light
+    (the caller encodes them after adding noise). Rendered in bands of at most BAND_RAYS rays."""
+    if water_space not in ("srgb", "linear"):
+        raise ValueError(f"water_space must be 'srgb' or 'linear', got {water_space!r}")
     cam, s = view.camera, supersample
-    u = (torch.arange(cam.width * s, dtype=F64) + 0.5) / s
-    v = (torch.arange(cam.height * s, dtype=F64) + 0.5) / s
-    vv, uu = torch.meshgrid(v, u, indexing="ij")
-    dirs_cam = torch.stack([(uu - cam.cx) / cam.fx, (vv - cam.cy) / cam.fy, torch.ones_like(uu)], -1)
+    bands = [_render_rows(world, view, s, water, ambient, distortion, water_space == "linear", rows)
+             for rows in row_bands(cam.height, cam.width * s * s, BAND_RAYS)]
+    if len(bands) == 1:
+        return bands[0]
+    return tuple(np.concatenate([b[k] for b in bands]) for k in range(3))  # type: ignore[return-value]
+
+
+def _render_rows(world: PhotoWorld, view: View, s: int, water: WaterParams, ambient: float,
+                 distortion: tuple[float, float], linear: bool, rows: tuple[int, int]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    cam, height = view.camera, rows[1] - rows[0]
+    dirs_cam = pixel_directions(cam, distortion, s, rows)
     z_per_t = (1.0 / torch.linalg.norm(dirs_cam, dim=-1)).reshape(-1)  # camera z per metre along the ray
     R = torch.as_tensor(view.R, dtype=F64)
     d = (dirs_cam.reshape(-1, 3) * z_per_t[:, None]) @ R  # [M, 3] unit world directions (R^T d_cam)
@@ -183,6 +218,8 @@ def render_view(world: PhotoWorld, view: View, supersample: int, water: WaterPar
         lambert = (n @ (light / torch.linalg.norm(light))).clamp(min=0)
         albedo = mosaic_albedo(world.photos, world.mosaic, p[:, :2]).to(F64)
         J[hit] = (albedo * (ambient + (1 - ambient) * lambert)[:, None]).clamp(0, 1)
+    if linear:
+        J = srgb_to_linear(J)
     bd, bb, binf = _water_arrays(water)
     r = torch.where(hit, t, torch.full_like(t, math.inf))[:, None]
     td = torch.nan_to_num(torch.exp(-bd * r), nan=1.0)  # exp(−0·inf) = NaN for the "none" preset at a miss
@@ -191,10 +228,10 @@ def render_view(world: PhotoWorld, view: View, supersample: int, water: WaterPar
     z = torch.where(hit, t * z_per_t, torch.full_like(t, FAR))
 
     def box(x: torch.Tensor) -> torch.Tensor:
-        return x.reshape(cam.height, s, cam.width, s, *x.shape[1:]).mean(dim=(1, 3))
+        return x.reshape(height, s, cam.width, s, *x.shape[1:]).mean(dim=(1, 3))
 
     missed = box((~hit).to(F64)) > 0
-    z_px = torch.where(missed, torch.full((cam.height, cam.width), FAR, dtype=F64), box(z))
+    z_px = torch.where(missed, torch.full((height, cam.width), FAR, dtype=F64), box(z))
     return box(J).numpy(), z_px.numpy(), box(image).numpy()
 
 
@@ -208,46 +245,75 @@ def add_sensor_noise(image: np.ndarray, gain: float, floor: float, rng: np.rando
 
 
 def photo_views(cfg: PhotoSynthConfig, world: PhotoWorld | None = None) -> tuple[PhotoWorld, list[SynthView]]:
-    """Render every view in memory (no files). Raises ValueError for an unknown preset."""
+    """Render every view in memory (no files), through the lens ``cfg.distortion``. Raises ValueError for an
+    unknown preset."""
+    world, views, _ = photo_scene(cfg, world, companions=False)
+    return world, views
+
+
+def photo_scene(cfg: PhotoSynthConfig, world: PhotoWorld | None = None, companions: bool = True
+                ) -> tuple[PhotoWorld, list[SynthView], list[SynthView] | None]:
+    """Every view and, with distortion (and ``companions``), its pinhole companion (same pose, ideal PINHOLE
+    lens, own noise stream). Returns (world, views, pinhole views or None)."""
+    world, rendered = iter_photo_scene(cfg, world, companions)
+    pairs = list(rendered)
+    pinhole = [p[1] for p in pairs if p[1] is not None]
+    return world, [p[0] for p in pairs], (pinhole if pinhole else None)
+
+
+def iter_photo_scene(cfg: PhotoSynthConfig, world: PhotoWorld | None = None, companions: bool = True):
+    """(world, iterator of (view, pinhole companion or None)), rendered one view at a time (bounded memory)."""
     if cfg.preset not in PHOTO_WATER_PRESETS:
         raise ValueError(f"unknown water preset {cfg.preset!r}; choose from {sorted(PHOTO_WATER_PRESETS)}")
     if cfg.supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {cfg.supersample}")
-    world = world or build_world(cfg)
+    distortion = _distortion(cfg.distortion)
     cam = make_camera(cfg)
+    original_camera(cam, distortion)  # fails early on a lens that folds over
+    world = world or build_world(cfg)
+    s = effective_supersample(cfg.width, cfg.height, cfg.supersample, cfg.max_rays_per_view)
     water = PHOTO_WATER_PRESETS[cfg.preset]
     path = photo_survey_path(cfg.views, np.random.default_rng([cfg.seed, 303]), altitude_range=cfg.altitude_range,
                              line_step=cfg.line_step, line_spacing=cfg.line_spacing,
                              oblique_fraction=cfg.oblique_fraction, pitch_range_deg=cfg.oblique_pitch_deg)
-    noise_rng = np.random.default_rng([cfg.seed, 404])
-    out = []
-    for i, (R, c) in enumerate(path):
-        view = View(name=f"frame_{i:04d}.png", camera=cam, R=R, t=-R @ c)
-        J, z, img = render_view(world, view, cfg.supersample, water, cfg.ambient)
-        n_far = int((z >= FAR).sum())
-        if n_far:
-            log.warning("%s: %d pixels whose rays hit no seabed (depth %g)", view.name, n_far, FAR)
-        out.append(SynthView(view, J, z, add_sensor_noise(img, cfg.noise_gain, cfg.noise_floor, noise_rng)))
-        log.debug("rendered %s", view.name)
-    return world, out
+    lenses = [(distortion, np.random.default_rng([cfg.seed, 404]))]
+    if companions and is_distorted(distortion):
+        lenses.append((NO_DISTORTION, np.random.default_rng([cfg.seed, 405])))
+
+    def views():
+        for i, (R, c) in enumerate(path):
+            view = View(name=f"frame_{i:04d}.png", camera=cam, R=R, t=-R @ c)
+            out = []
+            for lens, noise_rng in lenses:
+                J, z, img = render_view(world, view, s, water, cfg.ambient, lens, cfg.water_space)
+                n_far = int((z >= FAR).sum())
+                if n_far:
+                    log.warning("%s: %d pixels whose rays hit no seabed (depth %g)", view.name, n_far, FAR)
+                img = add_sensor_noise(img, cfg.noise_gain, cfg.noise_floor, noise_rng)
+                if cfg.water_space == "linear":
+                    J, img = linear_to_srgb(J), linear_to_srgb(img)
+                out.append(SynthView(view, J, z, img))
+            log.debug("rendered %s", view.name)
+            yield out[0], (out[1] if len(out) > 1 else None)
+
+    return world, views()
+
+
+def _distortion(value) -> tuple[float, float]:
+    k = tuple(float(x) for x in value)
+    if len(k) != 2:
+        raise ValueError(f"distortion is (k1, k2), got {value!r}")
+    return k  # type: ignore[return-value]
 
 
 def generate_photo_scene(cfg: PhotoSynthConfig, out_dir: str | Path) -> Path:
     """Render a photo-family scene and write it to ``out_dir`` (layout in the module docstring)."""
-    from pipeline.scene.images import write_image  # OpenImageIO loads only when files are written
-
     t0 = time.perf_counter()
-    world, views = photo_views(cfg)
+    world, rendered = iter_photo_scene(cfg)
     out = Path(out_dir)
-    for sub in ("images", "clean", "depth", "sparse_gt"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    for sv in views:
-        stem = Path(sv.view.name).stem
-        write_image(out / "images" / sv.view.name, _to_u8(sv.image))
-        write_image(out / "clean" / sv.view.name, _to_u8(sv.J))
-        np.save(out / "depth" / f"{stem}.npy", sv.depth.astype(np.float32))
-    points, colors, tracks = sample_surface_points(views, cfg.n_points, np.random.default_rng([cfg.seed, 505]))
-    write_colmap_text(out / "sparse_gt", [sv.view for sv in views], points, colors, tracks)
+    distortion = _distortion(cfg.distortion)
+    views = write_scene_files(out, rendered, cfg.views, distortion, cfg.n_points,
+                              np.random.default_rng([cfg.seed, 505]))
     water = PHOTO_WATER_PRESETS[cfg.preset]
     centres = [sv.view.center for sv in views]
     meta = {
@@ -257,6 +323,8 @@ def generate_photo_scene(cfg: PhotoSynthConfig, out_dir: str | Path) -> Path:
         "model": "I = J*exp(-beta_D*r) + B_inf*(1-exp(-beta_B*r)), r = distance along the ray; applied per "
                  "supersample before box filtering, so pixels obey it only approximately",
         "noise": {"model": "std = sqrt(a*I + b^2), Gaussian", "a": cfg.noise_gain, "b": cfg.noise_floor},
+        **lens_and_space_meta(distortion, cfg.water_space, effective_supersample(
+            cfg.width, cfg.height, cfg.supersample, cfg.max_rays_per_view)),
         "depth": "camera-space z in metres (depth/*.npy, box-filtered); r = depth * ray_length_factor at the "
                  f"pixel centre; {FAR:g} where a ray hits nothing",
         "world": "metres, z up, seabed near z = 0; poses in sparse_gt are cam_from_world",
@@ -271,8 +339,5 @@ def generate_photo_scene(cfg: PhotoSynthConfig, out_dir: str | Path) -> Path:
     return out
 
 
-def _to_u8(img: np.ndarray) -> np.ndarray:
-    return np.round(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
-__all__ = ["PHOTO_WATER_PRESETS", "PhotoSynthConfig", "generate_photo_scene", "make_camera", "photo_views"]
+__all__ = ["PHOTO_WATER_PRESETS", "PhotoSynthConfig", "generate_photo_scene", "make_camera", "photo_scene",
+           "photo_views"]

@@ -7,13 +7,25 @@ with the preset's known coefficients. Output folder::
     images/      underwater images, 8-bit PNG        (what a survey camera would record)
     clean/       clean radiance J, 8-bit PNG          (the restoration ground truth)
     depth/       camera-space z in metres, float32 .npy [H, W] (+inf where a ray hits nothing)
-    sparse_gt/   COLMAP text model (cameras.txt, images.txt, points3D.txt) of the true PINHOLE cameras and
+    sparse_gt/   COLMAP text model (cameras.txt, images.txt, points3D.txt) of the true cameras and
                  true surface points with their visible observations
     water.json   the true water parameters, units, conventions and the generator config
+    pinhole/     only with lens distortion: images/, clean/, depth/, sparse/ of the same views rendered through
+                 the ideal PINHOLE camera (same f, cx, cy, size, poses and points)
 
 Per pixel the model uses the pixel's mean J and mean depth over its supersamples, and the distance along the
-ray r = z · ray_length_factor (pixel centre), so every written pixel obeys the closed-form model exactly
+ray r = z · sqrt(1 + x² + y²) with (x, y) the undistorted normalised coordinates of the pixel centre
+(``ray_length_factor`` without distortion), so every written pixel obeys the closed-form model exactly
 (before noise and 8-bit quantisation). Everything is deterministic given the config (``seed``).
+
+Lens distortion (``SynthConfig.distortion`` = (k1, k2), COLMAP ``RADIAL``; :mod:`.lens`): every output pixel
+and supersample casts the ray of its undistorted position, so images/, clean/, depth/ are what the distorted
+camera records, and sparse_gt/ holds the RADIAL camera with observations projected through the distortion.
+
+Water space (``SynthConfig.water_space``): "srgb" applies the water to J as it is written; "linear" decodes J
+with the sRGB EOTF (:mod:`pipeline.scene.colour`), applies I_lin = J_lin·exp(−β_D r) + B∞(1 − exp(−β_B r)),
+adds the sensor noise to I_lin (noise always goes on the water model's output, before clipping), clips and
+sRGB-encodes I; clean/ keeps J (= encode(J_lin)).
 """
 
 from __future__ import annotations
@@ -29,13 +41,27 @@ import torch
 
 from pipeline.config import SynthConfig, to_dict
 from pipeline.scene.colmap import rotmat_to_qvec
-from pipeline.scene.records import Camera, View, ray_length_factor
+from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
+from pipeline.scene.records import Camera, View
+from pipeline.synth.lens import (
+    OriginalCamera,
+    is_distorted,
+    original_camera,
+    pixel_directions,
+    pixel_ray_factor,
+    project_pixels,
+    row_bands,
+    undistort_normalized,
+)
 from pipeline.synth.path import survey_path
 from pipeline.synth.water import TRUE_WATER_FILE, WATER_PRESETS, underwater_image
 from pipeline.synth.world import World, cast, make_world
 
 log = logging.getLogger(__name__)
 FAR = 1e3  # metres: depth recorded for the rare supersample whose ray hits nothing
+BAND_RAYS = 1 << 20  # rays cast at once; larger images are rendered in bands of pixel rows (bounded memory)
+NO_DISTORTION = (0.0, 0.0)
+PINHOLE_DIR = "pinhole"  # the pinhole companions of a distorted scene
 
 
 @dataclass
@@ -60,66 +86,124 @@ def build_world(cfg: SynthConfig) -> World:
                       extent=(half_x, 1.2 * cfg.altitude))
 
 
-def render(world: World, view: View, supersample: int) -> tuple[np.ndarray, np.ndarray]:
-    """Clean radiance J [H, W, 3] and camera-space depth [H, W] of one view (box-filtered supersamples)."""
+def effective_supersample(width: int, height: int, supersample: int, max_rays: int) -> int:
+    """``supersample`` lowered (not below 1) until width·height·s² ≤ ``max_rays``."""
+    s = max(1, supersample)
+    while s > 1 and width * height * s * s > max_rays:
+        s -= 1
+    if s != supersample:
+        log.info("%dx%d: supersample %d -> %d (max %d rays per view)", width, height, supersample, s, max_rays)
+    return s
+
+
+def render(world: World, view: View, supersample: int, distortion: tuple[float, float] = NO_DISTORTION
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Clean radiance J [H, W, 3] and camera-space depth [H, W] of one view (box-filtered supersamples), in
+    the geometry of the lens ``distortion`` (:mod:`.lens`); rendered in bands of at most BAND_RAYS rays."""
     cam, s = view.camera, supersample
-    u = (torch.arange(cam.width * s, dtype=torch.float64) + 0.5) / s
-    v = (torch.arange(cam.height * s, dtype=torch.float64) + 0.5) / s
-    vv, uu = torch.meshgrid(v, u, indexing="ij")
-    dirs_cam = torch.stack([(uu - cam.cx) / cam.fx, (vv - cam.cy) / cam.fy, torch.ones_like(uu)], -1)
+    bands = [_render_rows(world, view, s, distortion, rows)
+             for rows in row_bands(cam.height, cam.width * s * s, BAND_RAYS)]
+    if len(bands) == 1:
+        return bands[0]
+    return np.concatenate([b[0] for b in bands]), np.concatenate([b[1] for b in bands])
+
+
+def _render_rows(world: World, view: View, s: int, distortion: tuple[float, float], rows: tuple[int, int]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    cam, h = view.camera, rows[1] - rows[0]
+    dirs_cam = pixel_directions(cam, distortion, s, rows)
     z_per_t = 1.0 / torch.linalg.norm(dirs_cam, dim=-1)  # camera z per unit distance along the ray
     R = torch.as_tensor(view.R, dtype=torch.float64)
     d = (dirs_cam * z_per_t[..., None]).reshape(-1, 3) @ R  # world directions (R^T d_cam), unit length
     o = torch.as_tensor(view.center, dtype=torch.float64).expand_as(d)
     J, t = cast(world, o, d, t_max=FAR)
     z = torch.where(torch.isfinite(t), t * z_per_t.reshape(-1), torch.full_like(t, FAR))
-    J = J.reshape(cam.height, s, cam.width, s, 3).mean(dim=(1, 3))
-    z = z.reshape(cam.height, s, cam.width, s).mean(dim=(1, 3))
+    J = J.reshape(h, s, cam.width, s, 3).mean(dim=(1, 3))
+    z = z.reshape(h, s, cam.width, s).mean(dim=(1, 3))
     return J.numpy(), z.numpy()
 
 
+def water_image(J: np.ndarray, r: np.ndarray, water, water_space: str, noise_std: float,
+                rng: np.random.Generator) -> np.ndarray:
+    """The underwater image [H, W, 3] in [0, 1] as written (before 8-bit rounding): the water model on J
+    (sRGB-decoded first for ``water_space`` "linear"), noise on its output, clipped, re-encoded if linear."""
+    if water_space not in ("srgb", "linear"):
+        raise ValueError(f"water_space must be 'srgb' or 'linear', got {water_space!r}")
+    linear = water_space == "linear"
+    img = underwater_image(srgb_to_linear(J) if linear else J, r, water)
+    if noise_std > 0:
+        img = img + rng.normal(0.0, noise_std, img.shape)
+    img = np.clip(img, 0.0, 1.0)
+    return linear_to_srgb(img) if linear else img
+
+
 def synth_views(cfg: SynthConfig) -> tuple[World, list[SynthView]]:
-    """Render every view in memory (no files)."""
+    """Render every view in memory (no files), in the lens geometry of ``cfg.distortion``."""
+    world, views, _ = synth_scene(cfg, companions=False)
+    return world, views
+
+
+def synth_scene(cfg: SynthConfig, companions: bool = True
+                ) -> tuple[World, list[SynthView], list[SynthView] | None]:
+    """Render every view; with distortion (and ``companions``) also its pinhole companion (same pose, ideal
+    PINHOLE lens, own noise stream). Returns (world, views, pinhole views or None)."""
+    world, rendered = iter_scene(cfg, companions)
+    pairs = list(rendered)
+    views = [p[0] for p in pairs]
+    pinhole = [p[1] for p in pairs if p[1] is not None]
+    return world, views, (pinhole if pinhole else None)
+
+
+def iter_scene(cfg: SynthConfig, companions: bool = True):
+    """(world, iterator of (view, pinhole companion or None)), rendered one view at a time (bounded memory)."""
     if cfg.preset not in WATER_PRESETS:
         raise ValueError(f"unknown water preset {cfg.preset!r}; choose from {sorted(WATER_PRESETS)}")
+    distortion = _distortion(cfg.distortion)
     rng = np.random.default_rng(cfg.seed)
     world = build_world(cfg)
     cam = make_camera(cfg)
+    original_camera(cam, distortion)  # fails early on a lens that folds over
+    s = effective_supersample(cfg.width, cfg.height, cfg.supersample, cfg.max_rays_per_view)
     water = WATER_PRESETS[cfg.preset]
-    ray = ray_length_factor(cam)
-    noise_rng = np.random.default_rng(cfg.seed + 7919)
-    out = []
-    for i, (R, c) in enumerate(survey_path(cfg.views, cfg.path, cfg.altitude, rng)):
-        view = View(name=f"frame_{i:04d}.png", camera=cam, R=R, t=-R @ c)
-        J, z = render(world, view, cfg.supersample)
-        img = underwater_image(J, z * ray, water)
-        if cfg.noise_std > 0:
-            img = img + noise_rng.normal(0.0, cfg.noise_std, img.shape)
-        out.append(SynthView(view, J, z, np.clip(img, 0.0, 1.0)))
-        log.debug("rendered %s", view.name)
-    return world, out
+    lenses = [(distortion, pixel_ray_factor(cam, distortion), np.random.default_rng(cfg.seed + 7919))]
+    if companions and is_distorted(distortion):
+        lenses.append((NO_DISTORTION, pixel_ray_factor(cam, NO_DISTORTION), np.random.default_rng([cfg.seed, 7920])))
+    poses = survey_path(cfg.views, cfg.path, cfg.altitude, rng)
+
+    def views():
+        for i, (R, c) in enumerate(poses):
+            view = View(name=f"frame_{i:04d}.png", camera=cam, R=R, t=-R @ c)
+            out = []
+            for lens, ray, noise_rng in lenses:
+                J, z = render(world, view, s, lens)
+                out.append(SynthView(view, J, z, water_image(J, z * ray, water, cfg.water_space, cfg.noise_std,
+                                                             noise_rng)))
+            log.debug("rendered %s", view.name)
+            yield out[0], (out[1] if len(out) > 1 else None)
+
+    return world, views()
+
+
+def _distortion(value) -> tuple[float, float]:
+    k = tuple(float(x) for x in value)
+    if len(k) != 2:
+        raise ValueError(f"distortion is (k1, k2), got {value!r}")
+    return k  # type: ignore[return-value]
 
 
 def generate_scene(cfg: SynthConfig, out_dir: str | Path) -> Path:
     """Render a scene and write it to ``out_dir`` (layout in the module docstring). Returns the folder."""
-    from pipeline.scene.images import write_image  # OpenImageIO loads only when files are written
-
     out = Path(out_dir)
-    for sub in ("images", "clean", "depth", "sparse_gt"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    world, views = synth_views(cfg)
-    for sv in views:
-        stem = Path(sv.view.name).stem
-        write_image(out / "images" / sv.view.name, _to_u8(sv.image))
-        write_image(out / "clean" / sv.view.name, _to_u8(sv.J))
-        np.save(out / "depth" / f"{stem}.npy", sv.depth.astype(np.float32))
-    points, colors, tracks = sample_surface_points(views, cfg.n_points, np.random.default_rng(cfg.seed + 1))
-    write_colmap_text(out / "sparse_gt", [sv.view for sv in views], points, colors, tracks)
+    world, rendered = iter_scene(cfg)
+    distortion = _distortion(cfg.distortion)
+    views = write_scene_files(out, rendered, cfg.views, distortion, cfg.n_points, np.random.default_rng(cfg.seed + 1))
     water = WATER_PRESETS[cfg.preset]
     meta = {
         "preset": cfg.preset,
         **water.to_json(),
         "model": "I = J*exp(-beta_D*r) + B_inf*(1-exp(-beta_B*r)), r = depth * ray_length_factor",
+        **lens_and_space_meta(distortion, cfg.water_space, effective_supersample(
+            cfg.width, cfg.height, cfg.supersample, cfg.max_rays_per_view)),
         "depth": "camera-space z in metres (depth/*.npy); r is the distance along the pixel's ray",
         "world": "metres, z up, seabed near z = 0; poses in sparse_gt are cam_from_world",
         "generator": to_dict(cfg),
@@ -130,52 +214,132 @@ def generate_scene(cfg: SynthConfig, out_dir: str | Path) -> Path:
     return out
 
 
+def lens_and_space_meta(distortion: tuple[float, float], water_space: str, supersample: int) -> dict:
+    """water.json entries on the lens, the water space and the supersampling actually used."""
+    return {
+        "camera_model": "RADIAL" if is_distorted(distortion) else "PINHOLE",
+        "distortion": {"k1": distortion[0], "k2": distortion[1],
+                       "note": "COLMAP RADIAL (f, cx, cy, k1, k2); images/clean/depth are in the distorted "
+                               "geometry, the ray factor is sqrt(1 + x^2 + y^2) of each pixel's undistorted "
+                               "normalised coordinates; pinhole companions in pinhole/"}
+        if is_distorted(distortion) else None,
+        "water_space": water_space,
+        "supersample_used": supersample,
+    }
+
+
+def write_scene_files(out: Path, rendered, n_views: int, distortion: tuple[float, float], n_points: int,
+                      rng: np.random.Generator) -> list[SynthView]:
+    """Write each (view, pinhole companion or None) of ``rendered`` as it comes (images/, clean/, depth/; the
+    companions under pinhole/), sampling its surface points on the way, then sparse_gt/ (lens ``distortion``)
+    and pinhole/sparse/ (PINHOLE, the same points observed through the ideal lens). Only the depth maps are
+    kept; returns the views with J and image dropped (empty arrays)."""
+    per_view = math.ceil(n_points / n_views) if n_points > 0 and n_views > 0 else 0
+    kept, kept_pin, pts, cols = [], [], [], []
+    for sv, pin in rendered:
+        _write_views(out, [sv])
+        if pin is not None:
+            _write_views(out / PINHOLE_DIR, [pin])
+            kept_pin.append(_depth_only(pin))
+        if per_view:
+            p, c = _sample_view_points(sv, per_view, rng, distortion)
+            pts.append(p)
+            cols.append(c)
+        kept.append(_depth_only(sv))
+    if pts:
+        points, colors = np.concatenate(pts)[:n_points], np.concatenate(cols)[:n_points]
+    else:
+        points, colors = np.zeros((0, 3)), np.zeros((0, 3))
+    cam = kept[0].view.camera if kept else None
+    write_colmap_text(out / "sparse_gt", [sv.view for sv in kept], points, colors,
+                      observe_points(points, kept, distortion), original_camera(cam, distortion) if cam else None)
+    if kept_pin:
+        write_colmap_text(out / PINHOLE_DIR / "sparse", [sv.view for sv in kept_pin], points, colors,
+                          observe_points(points, kept_pin, NO_DISTORTION))
+    return kept
+
+
+def _depth_only(sv: SynthView) -> SynthView:
+    empty = np.zeros((0, 0, 3))
+    return SynthView(sv.view, empty, sv.depth, empty)
+
+
+def _write_views(out: Path, views: list[SynthView]) -> None:
+    from pipeline.scene.images import write_image  # OpenImageIO loads only when files are written
+
+    for sub in ("images", "clean", "depth"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    for sv in views:
+        stem = Path(sv.view.name).stem
+        write_image(out / "images" / sv.view.name, _to_u8(sv.image))
+        write_image(out / "clean" / sv.view.name, _to_u8(sv.J))
+        np.save(out / "depth" / f"{stem}.npy", sv.depth.astype(np.float32))
+
+
 def _to_u8(img: np.ndarray) -> np.ndarray:
     return np.round(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def sample_surface_points(views: list[SynthView], n: int, rng: np.random.Generator):
-    """True surface points seen in the views, with every view that sees them (depth-test visibility).
+def sample_surface_points(views: list[SynthView], n: int, rng: np.random.Generator,
+                          distortion: tuple[float, float] = NO_DISTORTION):
+    """True surface points seen in the views (rendered through the lens ``distortion``), with every view that
+    sees them (depth-test visibility).
 
     Returns points [P, 3], colours [P, 3] in [0, 1], and per point a list of (view index, x, y) observations.
     """
     if n <= 0 or not views:
         return np.zeros((0, 3)), np.zeros((0, 3)), []
     per_view = math.ceil(n / len(views))
-    pts, cols = [], []
-    for sv in views:
-        cam = sv.view.camera
-        ys = rng.integers(0, cam.height, per_view)
-        xs = rng.integers(0, cam.width, per_view)
-        z = sv.depth[ys, xs]
-        ok = z < FAR * 0.5
-        xc = np.stack([(xs[ok] + 0.5 - cam.cx) / cam.fx * z[ok], (ys[ok] + 0.5 - cam.cy) / cam.fy * z[ok], z[ok]], 1)
-        pts.append((xc - sv.view.t) @ sv.view.R)  # R^T (x_cam − t)
-        cols.append(sv.J[ys[ok], xs[ok]])
-    points, colors = np.concatenate(pts)[:n], np.concatenate(cols)[:n]
+    sampled = [_sample_view_points(sv, per_view, rng, distortion) for sv in views]
+    points = np.concatenate([p for p, _ in sampled])[:n]
+    colors = np.concatenate([c for _, c in sampled])[:n]
+    return points, colors, observe_points(points, views, distortion)
+
+
+def _sample_view_points(sv: SynthView, per_view: int, rng: np.random.Generator, distortion: tuple[float, float]
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """``per_view`` random pixels of one view back-projected to world points (rays that hit nothing dropped)
+    with their J colours. ([K, 3], [K, 3])"""
+    cam = sv.view.camera
+    ys = rng.integers(0, cam.height, per_view)
+    xs = rng.integers(0, cam.width, per_view)
+    z = sv.depth[ys, xs]
+    ok = z < FAR * 0.5
+    xn, yn = (xs[ok] + 0.5 - cam.cx) / cam.fx, (ys[ok] + 0.5 - cam.cy) / cam.fy
+    if is_distorted(distortion):
+        xn, yn = (a.numpy() for a in undistort_normalized(torch.as_tensor(xn), torch.as_tensor(yn), distortion))
+    xc = np.stack([xn * z[ok], yn * z[ok], z[ok]], 1)
+    return (xc - sv.view.t) @ sv.view.R, sv.J[ys[ok], xs[ok]]  # R^T (x_cam − t)
+
+
+def observe_points(points: np.ndarray, views: list[SynthView], distortion: tuple[float, float]
+                   ) -> list[list[tuple[int, float, float]]]:
+    """Per point, the (view index, x, y) pixel observations (projected through the lens) of the views whose
+    depth map agrees with the point's camera z (visible, not hidden behind a nearer surface)."""
     tracks: list[list[tuple[int, float, float]]] = [[] for _ in range(len(points))]
     for vi, sv in enumerate(views):
         cam = sv.view.camera
         xc = points @ sv.view.R.T + sv.view.t
         zc = xc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            px = cam.fx * xc[:, 0] / zc + cam.cx
-            py = cam.fy * xc[:, 1] / zc + cam.cy
-        inside = (zc > 1e-3) & (px >= 0) & (px < cam.width) & (py >= 0) & (py < cam.height)
+        px, py = project_pixels(cam, distortion, xc)
+        with np.errstate(invalid="ignore"):
+            inside = (zc > 1e-3) & (px >= 0) & (px < cam.width) & (py >= 0) & (py < cam.height)
         for pi in np.nonzero(inside)[0]:
             zd = sv.depth[int(py[pi]), int(px[pi])]
             if abs(zd - zc[pi]) < 0.01 + 0.01 * zc[pi]:  # visible: not hidden behind a nearer surface
                 tracks[pi].append((vi, float(px[pi]), float(py[pi])))
-    return points, colors, tracks
+    return tracks
 
 
-def write_colmap_text(out: Path, views: list[View], points: np.ndarray, colors: np.ndarray, tracks) -> None:
-    """Classic 3-file COLMAP text model (one shared PINHOLE camera, points with observations)."""
+def write_colmap_text(out: Path, views: list[View], points: np.ndarray, colors: np.ndarray, tracks,
+                      camera: OriginalCamera | None = None) -> None:
+    """Classic 3-file COLMAP text model (one shared camera: ``camera``, default the views' PINHOLE camera;
+    points with observations)."""
+    out.mkdir(parents=True, exist_ok=True)
     cam = views[0].camera
-    (out / "cameras.txt").write_text(
-        "# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
-        f"1 PINHOLE {cam.width} {cam.height} {cam.fx!r} {cam.fy!r} {cam.cx!r} {cam.cy!r}\n"
-    )
+    line = (camera.cameras_txt_line() if camera is not None and camera.model != "PINHOLE"
+            else f"1 PINHOLE {cam.width} {cam.height} {cam.fx!r} {cam.fy!r} {cam.cx!r} {cam.cy!r}")
+    (out / "cameras.txt").write_text("# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + line + "\n")
     obs: list[list[tuple[float, float, int]]] = [[] for _ in views]
     point_tracks: list[list[tuple[int, int]]] = []
     for pid, tr in enumerate(tracks):
