@@ -152,6 +152,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
             seen = rest["seen"]
             print(f"      over the {100 * seen['fraction']:.0f} % of pixels a training view saw: restored J "
                   f"{_db(seen['restored_psnr'])} (the photos: {_db(seen['input_psnr'])})")
+    photos = ((res.get("restore") or {}).get("truth") or {}).get("test")
+    if photos:
+        print(f"      your photos de-watered ({job.restored.name}/, full resolution) against the truth (held-out): "
+              f"{_db(photos['restored_psnr'])} (the model's J render carried into the photos: "
+              f"{_db(photos['render_psnr'])}; the photos themselves: {_db(photos['photo_psnr'])})")
     if coef:
         # SfM scenes have no metric scale: one scene unit is errs['scale'] metres (similarity to the truth).
         metric = per_metre(coef["beta_D"], errs["scale"])

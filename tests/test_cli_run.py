@@ -38,6 +38,10 @@ def test_demo_prints_real_numbers_and_where_the_report_is(tmp_path, capsys):
     assert restored and photos and 8.0 < float(restored.group(1)) < 40.0 and 8.0 < float(photos.group(1)) < 25.0
     seen = re.search(r"over the (\d+) % of pixels a training view saw: restored J ([\d.]+) dB", out)
     assert seen and 30 <= int(seen.group(1)) <= 100 and 8.0 < float(seen.group(2)) < 40.0
+    photos = re.search(r"your photos de-watered \(restored/, full resolution\) against the truth \(held-out\): "
+                       r"([\d.]+) dB \(the model's J render carried into the photos: ([\d.]+) dB; the photos "
+                       r"themselves: ([\d.]+) dB\)", out)
+    assert photos and 8.0 < float(photos.group(3)) < float(photos.group(1)) < 45.0
     beta = re.findall(r"([RGB]) ([\d.]+) \(true ([\d.]+)\)", out)
     assert [c for c, _, _ in beta] == ["R", "G", "B"] and all(float(b) > 0 for _, b, _ in beta)
 
@@ -54,6 +58,15 @@ def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
     for f in (layout.ply, layout.report_json, layout.report_html):
         assert f.is_file(), f
     assert len(list(layout.render_folder("restored").glob("*.png"))) == 12
+    # issue 14: the photos themselves, de-watered: same names and sizes as the inputs, one confidence map each
+    from pipeline.scene.images import read_image
+
+    names = sorted(p.name for p in (scene / "images").iterdir())
+    assert sorted(p.name for p in layout.restored.iterdir()) == names
+    assert read_image(layout.restored / names[0]).shape == read_image(scene / "images" / names[0]).shape
+    assert len(list(layout.confidence.glob("*_surface.png"))) == 12 and len(list(layout.confidence.glob("*.png"))) == 24
+    restore = json.loads(layout.restore_result.read_text())
+    assert restore["restored"] == 12 and restore["not_restored"] == [] and restore["truth"]["test"]["n"] == 2
     # the resolved config is saved, and it is the one the model was trained with
     resolved = json.loads(layout.train_config.read_text())
     assert (resolved["mode"], resolved["iterations"], resolved["downscale"]) == ("homogeneous", 60, 2)
@@ -67,13 +80,15 @@ def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
 
     rendered = tmp_path / "render"
     assert main(["render", str(job), "--out", str(rendered), "--views", "frame_0001,frame_0002.png",
-                 "--what", "restored,with_water,attenuation", "--orbit", "3"]) == 0
+                 "--what", "photos,restored,with_water,attenuation", "--orbit", "3"]) == 0
     summary = _last_json(capsys.readouterr().out)
     assert summary["views"] == 5 and summary["novel"] == 3
-    for folder in ("restored", "with_water", "attenuation"):
-        names = sorted(p.name for p in (rendered / folder).glob("*.png"))
+    for folder in ("restored", "with_water", "attenuation"):  # laid out as the job's output folder
+        names = sorted(p.name for p in (rendered / "renders" / folder).glob("*.png"))
         assert names == ["frame_0001.png", "frame_0002.png", "novel_0000.png", "novel_0001.png", "novel_0002.png"]
-    assert not (rendered / "depth").exists()
+    assert not (rendered / "renders" / "depth").exists()
+    assert summary["photos"] == 2  # the two chosen views' photos, de-watered (novel cameras have none)
+    assert (rendered / "restored" / "frame_0001.png").read_bytes() == (layout.restored / "frame_0001.png").read_bytes()
 
     assert main(["render", str(job), "--out", str(rendered), "--views", "nope"]) == 1
     assert "no view named nope" in capsys.readouterr().err

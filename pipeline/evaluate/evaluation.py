@@ -180,7 +180,7 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
     rendered = render_timed(model, views, backend)
     save_renders(rendered, layout.true_camera)
     clean = [gt.clean(v) for v in views]
-    photos = [load_view_image_from(gt_root / "images" / v.name, v) for v in views]
+    photos = [load_view_image_from(gt.root / "images" / v.name, v) for v in views]
     train = json.loads(layout.train_result.read_text())
     restored = [(r.out.J, c) for r, c in zip(rendered, clean, strict=True)]
     unrestored = list(zip(photos, clean, strict=True))

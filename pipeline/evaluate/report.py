@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 SCHEMA_VERSION = 1
 SCHEMA_FILE = Path(__file__).resolve().parents[1] / "data" / "report.schema.json"
 MAX_VIEWS_SHOWN = 6  # held-out views pictured in the HTML (all are scored)
+MAX_PHOTOS_SHOWN = 4  # restored photos pictured (held-out first; 5 pictures each, at up to SHOWN_WIDTH)
 
 
 def _read_json(path: Path) -> Any:
@@ -205,7 +206,7 @@ def original_pictures(job: Path, report: dict) -> list[tuple[str, list[tuple[str
     rest = report.get("restore") or {}
     done = [v["name"] for v in rest.get("views", [])]
     test = report["metrics"]["test"]["views"]
-    names = ([n for n in test if n in done] + [n for n in done if n not in test])[:MAX_VIEWS_SHOWN]
+    names = ([n for n in test if n in done] + [n for n in done if n not in test])[:MAX_PHOTOS_SHOWN]
     out = []
     for n in names:
         photo_path, restored_path = layout.images / n, layout.restored / next(

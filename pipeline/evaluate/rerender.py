@@ -68,10 +68,11 @@ def path_views(views: Sequence[View], n: int) -> list[View]:
 def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "all",
                what: Sequence[str] = ("restored", "with_water"), novel: int = 0, backend: str = "auto",
                max_gain: float = 8.0, fmt: str = "auto") -> dict:
-    """Render the trained model of ``job`` into ``out/<what>/``: the job's views (``"all"`` or names, with or
-    without the extension) and ``novel`` cameras on a path through them. ``"photos"`` in ``what``: the chosen
-    views' input photos de-watered at full resolution into ``out/restored/`` and ``out/confidence/`` (as the
-    restore stage does, with this gain cap and format; novel cameras have no photo). Returns counts."""
+    """Render the trained model of ``job`` into ``out`` laid out as a job's output folder: the model's renders in
+    ``out/renders/<what>/`` for the job's views (``"all"`` or names, with or without the extension) and ``novel``
+    cameras on a path through them; with ``"photos"`` in ``what``, the chosen views' input photos de-watered at
+    full resolution into ``out/restored/`` and ``out/confidence/`` (as the restore stage does, with this gain cap
+    and format; novel cameras have no photo). Returns counts."""
     from pipeline.export.views import export_views
     from pipeline.train.checkpoint import load_checkpoint
 
@@ -99,7 +100,8 @@ def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "a
     chosen = chosen + (path_views(cams, novel) if novel else [])
     if not chosen:
         raise RenderError("nothing to render: no views chosen and no novel views asked for")
-    counts = export_views(state, chosen, out, backend=backend, what=what) if what else {"views": len(chosen)}
+    renders = out / JobLayout(job).renders.relative_to(JobLayout(job).output)
+    counts = export_views(state, chosen, renders, backend=backend, what=what) if what else {"views": len(chosen)}
     if restored is not None:
         counts["photos"] = restored
     if state.get("medium") is None and set(what) & {"attenuation", "backscatter"}:

@@ -23,6 +23,7 @@ from pipeline.job.markers import atomic_write_json
 from pipeline.job.options import JobOptions
 from pipeline.job.runner import run_job
 from pipeline.job.table import STAGES
+from pipeline.restore.views import NOTHING_TO_RESTORE
 from pipeline.synth.procedural import generate_scene
 
 ITERATIONS = 150
@@ -138,13 +139,17 @@ def test_report_html_stands_alone_with_every_image_embedded(job):
     job_dir, _ = job
     html = JobLayout(job_dir).report_html.read_text()
     srcs = re.findall(r'<img[^>]*\ssrc="([^"]*)"', html)
-    assert len(srcs) == 2 * 4 + 2 * 3 + 1  # 2 held-out views x (photo, model, restored, truth) + 2 x (A, B, depth)
-    for src in srcs:  # + the curve
+    # 4 restored photos x (photo, restored, confidence, 2 crops) + 2 held-out views x (photo, model, restored,
+    # truth) + 2 x (A, B, depth) + the curve
+    assert len(srcs) == 4 * 5 + 2 * 4 + 2 * 3 + 1
+    for src in srcs:
         assert src.startswith("data:image/png;base64,"), src[:40]
         shape = _png_shape(base64.b64decode(src.split(",", 1)[1], validate=True))
         assert len(shape) == 3 and shape[0] >= 60 and shape[1] >= 80
     assert not re.search(r'(src|href)="(?!data:)', html)  # nothing the page would fetch
     assert "restored J vs true clean J" in html and "Water type" in html and "Config" in html
+    photos = html[html.index("<h2>Your photos, de-watered</h2>"):html.index("<h2>Held-out views</h2>")]
+    assert "12 photos restored at their own resolution (96x72)" in photos and "held-out photos" in photos
 
 
 @pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium is not installed (.ci/run installs it)")
@@ -190,12 +195,14 @@ def test_report_says_what_happened(job, tmp_path):
     sel = {"requested": "auto", "chosen": "3dgs", "reason": "probe: the water changes nothing measurable"}
     copy.selection.write_text(json.dumps(sel))
     copy.source_name.write_text(json.dumps({"name": "reef-dive.zip"}))
+    atomic_write_json(copy.restore_result, {"mode": "3dgs", "restored": 0, "note": NOTHING_TO_RESTORE, "views": []})
     write_report(copy.root, copy.output)
     r3 = json.loads(copy.report_json.read_text())
     validate_report(r3)
     assert r3["mode"] == "3dgs" and r3["input"]["name"] == "reef-dive.zip"
     html3 = copy.report_html.read_text()
     assert "No water was removed" in html3 and "probe: the water changes nothing measurable" in html3
+    assert f"No photo was restored.</b> {NOTHING_TO_RESTORE}" in html3 and r3["restore"]["restored"] == 0
     assert "Held-out views: photo, model, ground truth" in html3
     for claim in ("<figcaption>restored J", "restored J PSNR", "restored J vs true"):  # shown for dualphys
         assert claim in html and claim not in html3, claim
