@@ -163,17 +163,20 @@ def _linear_to_srgb(x):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True)
-def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max):  # pragma: no cover - numba
+def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max, prior, has_prior
+            ):  # pragma: no cover - numba
     """The physics per pixel (twin: ``pipeline.restore.dewater.dewater_reference``).
 
     img [n, W, 3] any dtype (× ``scale`` → [0, 1]); r [n, W] float32 range; surface [n, W] bool; k_A, k_B
-    [n, W, 3] or [1, 1, 3] float32; B_inf [3]; max_gain > 1. Writes J [n, W, 3] (uint8 or uint16) quantised to
-    0..out_max; returns (confidence [n, W] float32, clipped pixel count)."""
+    [n, W, 3] or [1, 1, 3] float32; B_inf [3]; max_gain > 1; prior [n, W, 3] float32 (the model's J, in the
+    physics' space) read when ``has_prior``. Writes J [n, W, 3] (uint8 or uint16) quantised to 0..out_max;
+    returns (confidence [n, W] float32, clipped pixel count)."""
     n, W, _ = img.shape
     conf = np.zeros((n, W), np.float32)
     clipped = np.zeros(n, np.int64)
     a_min = 1.0 / max_gain
     log_g = np.log(max_gain)
+    lam2 = (0.5 / max_gain) ** 2  # the prior's weight: the gain A / (A² + lam2) peaks at max_gain
     full_A = 1 if k_A.shape[0] > 1 else 0  # index multipliers: 0 reads the [1, 1, 3] constant
     full_B = 1 if k_B.shape[0] > 1 else 0
     for i in prange(n):
@@ -191,12 +194,16 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
             for c in range(3):
                 A = np.exp(-min(max(np.float64(k_A[ia, ja, c]) * rr, 0.0), 80.0))
                 B = B_inf[c] * -np.expm1(-min(max(np.float64(k_B[ib, jb, c]) * rr, 0.0), 80.0))
-                Ae = max(A, a_min)
-                cmin = min(cmin, np.log(Ae * max_gain) / log_g)
                 x = scale * np.float64(img[i, j, c])
                 if linear:
                     x = _srgb_to_linear(x)
-                v = (x - B) / Ae
+                if has_prior:
+                    v = (A * (x - B) + lam2 * np.float64(prior[i, j, c])) / (A * A + lam2)
+                    cmin = min(cmin, A * A / (A * A + lam2))
+                else:
+                    Ae = max(A, a_min)
+                    cmin = min(cmin, np.log(Ae * max_gain) / log_g)
+                    v = (x - B) / Ae
                 if v < 0.0 or v > 1.0:
                     clip = True
                     v = min(max(v, 0.0), 1.0)

@@ -1,9 +1,18 @@
 """The physics per pixel: J = (I − B(r)) / A(r), with a per-channel gain cap and a confidence map.
 
 Rules (docs/DECISIONS.md, "Restoring the originals"):
-- Gain cap: A_eff = max(A, 1/max_gain) per channel, so no channel is amplified more than ``max_gain`` times.
-- Confidence c = min over channels of ln(A_eff·g) / ln g, g = max_gain: 1 where the water attenuates nothing,
-  0 where a channel reaches the cap (its restoration is then only partial); 0 where there is no surface.
+- With the model's own restored radiance J_m of the pixel (``prior``: the multi-view reconstruction, rendered
+  and sampled into the photo; what the restore stage passes): the least-squares J of
+  (I − B − A·J)² + λ²·(J − J_m)², λ = 1/(2·max_gain), per channel:
+      J = (A·(I − B) + λ²·J_m) / (A² + λ²).
+  Where the water lets light through (A ≫ λ) this is (I − B)/A, the photo's own detail; where it does not (far
+  range, red in turbid water) the photo's signal is below its noise and J leans on the model, which saw that
+  surface from nearer views. The gain dJ/dI = A / (A² + λ²) is at most 1/(2λ) = ``max_gain``: no channel is
+  ever amplified more. Confidence c = min over channels of A² / (A² + λ²): the photo's share of the result
+  (1: all the photo's own, 0: all the model's); 0 where there is no surface.
+- Without a prior (a bare photo and a medium): the gain cap A_eff = max(A, 1/max_gain) per channel, and
+  c = min over channels of ln(A_eff·g) / ln g, g = max_gain: 1 where the water attenuates nothing, 0 where a
+  channel reaches the cap (its restoration is then only partial, and dark); 0 where there is no surface.
 - No surface (alpha < 0.5, outside the render camera, or z ≤ 0): nothing is invented, J is the photo's pixel
   unchanged.
 - J is clipped to [0, 1]; the count of surface pixels with any channel clipped is returned.
@@ -37,7 +46,7 @@ def _k(k: np.ndarray) -> np.ndarray:
 
 def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray, k_B: np.ndarray,
             B_inf: np.ndarray, *, max_gain: float = 8.0, space: str = "srgb", out_max: int = 255,
-            scale: float | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+            scale: float | None = None, prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Restore a block of pixels.
 
     Args:
@@ -47,6 +56,7 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
         max_gain: the per-channel gain cap (> 1); space: "srgb" | "linear"; out_max: 255 → uint8 J, 65535 →
         uint16 J.
         scale: multiplies img to [0, 1]; default from its dtype (1/255, 1/65535, 1).
+        prior: [n, W, 3] the model's J of each pixel in the physics' space (linear light for "linear"), or None.
     Returns (J [n, W, 3] uint8 or uint16, confidence [n, W] float32 in [0, 1], clipped pixel count)."""
     from pipeline.restore._kernels import dewater as kernel
 
@@ -57,12 +67,14 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
     conf, clipped = kernel(np.ascontiguousarray(img), float(scale), np.ascontiguousarray(r, np.float32),
                            np.ascontiguousarray(surface, np.bool_), _k(k_A), _k(k_B),
                            np.asarray(B_inf, np.float64).reshape(3), float(max_gain), space == "linear", J,
-                           int(out_max))
+                           int(out_max), np.ascontiguousarray(prior if prior is not None else np.zeros((1, 1, 3)),
+                                                              np.float32), prior is not None)
     return J, conf, int(clipped)
 
 
 def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,
-                      max_gain: float = 8.0, space: str = "srgb") -> tuple[np.ndarray, np.ndarray, int]:
+                      max_gain: float = 8.0, space: str = "srgb", prior: np.ndarray | None = None,
+                      ) -> tuple[np.ndarray, np.ndarray, int]:
     """Slow twin of :func:`dewater` (numpy, float64, unquantised). img float [n, W, 3] in [0, 1].
     Returns (J float64 [n, W, 3] in [0, 1], confidence [n, W], clipped pixel count)."""
     _check(max_gain, space)
@@ -72,11 +84,17 @@ def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, mediu
     A = np.exp(-np.clip(np.nan_to_num(medium.k_A) * rr, 0, 80))
     B = medium.B_inf * -np.expm1(-np.clip(np.nan_to_num(medium.k_B) * rr, 0, 80))
     Ae = np.maximum(A, 1.0 / max_gain)
-    raw = (x - B) / Ae
+    if prior is None:
+        raw = (x - B) / Ae
+        share = np.log(Ae * max_gain) / np.log(max_gain)
+    else:
+        lam2 = (0.5 / max_gain) ** 2
+        raw = (A * (x - B) + lam2 * np.asarray(prior, np.float64)) / (A * A + lam2)
+        share = A * A / (A * A + lam2)
     J = np.clip(raw, 0, 1)
     J = linear_to_srgb(J) if space == "linear" else J
     surface = np.asarray(surface, bool)
     J = np.where(surface[..., None], J, np.clip(img, 0, 1))
-    conf = np.where(surface, np.maximum((np.log(Ae * max_gain) / np.log(max_gain)).min(-1), 0.0), 0.0)
+    conf = np.where(surface, np.maximum(share.min(-1), 0.0), 0.0)
     clipped = int((surface & ((raw < 0) | (raw > 1)).any(-1)).sum())
     return J, conf, clipped

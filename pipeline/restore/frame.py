@@ -80,6 +80,8 @@ class FrameRestorer:
         m = view.medium
         self.kmaps = None if m.constant else np.ascontiguousarray(np.concatenate(
             [np.broadcast_to(m.k_A, (*z.shape, 3)), np.broadcast_to(m.k_B, (*z.shape, 3))], -1), np.float32)
+        self.jmap = None if view.J is None else np.ascontiguousarray(
+            fill_invalid(np.asarray(view.J, np.float64), ok), np.float32)  # [h, w, 3], no holes to bleed in
         logger.debug("restore %dx%d: lens grid step %d (%.4f px), filter r=%d s=%d halo=%d", lens.width,
                      lens.height, self.grid.step, self.grid.error, self.radius, self.s, self.halo)
 
@@ -113,8 +115,9 @@ class FrameRestorer:
         if self.kmaps is not None:
             k, _ = sample_maps(self.kmaps, xc, yc, self.view.camera)
             k_A, k_B = k[..., :3], k[..., 3:]
+        prior = None if self.jmap is None else sample_maps(self.jmap, xc, yc, self.view.camera)[0]
         J, conf, clipped = dewater(rows[c], r, surface, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
-                                   space=self.opt.space, out_max=out_max, scale=scale)
+                                   space=self.opt.space, out_max=out_max, scale=scale, prior=prior)
         return J, conf, surface, clipped
 
 

@@ -59,12 +59,15 @@ class RenderedView:
     """What the trained model rendered for one view in its render camera (PINHOLE, training resolution).
 
     depth [h, w]: camera z in scene units, 0 where nothing was rendered; alpha [h, w] in [0, 1] (a pixel is
-    surface where alpha ≥ 0.5); medium: the view's water."""
+    surface where alpha ≥ 0.5); medium: the view's water; J [h, w, 3] (optional): the model's restored radiance
+    (alpha-normalised, in the space the physics runs in), the prior where the photo's signal is too weak
+    (:mod:`pipeline.restore.dewater`)."""
 
     camera: Camera
     depth: np.ndarray
     alpha: np.ndarray
     medium: MediumMaps
+    J: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = (self.camera.height, self.camera.width)

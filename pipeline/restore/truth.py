@@ -4,7 +4,7 @@ Per photo, over the pixels whose true ray hits the seabed, three PSNRs against t
 photo's own (distorted) geometry: the restored photo as the user gets it (the 8-bit file), the model's restored
 render (what ``restored/`` held before: the training-resolution J) carried into the photo's geometry through the
 same lens map and upsampled bilinearly, and the photo itself. And how well the edges line up: the sub-pixel
-shift between each image's gradient magnitude and the truth's, by phase correlation.
+shift between each image's gradient magnitude and the truth's, by cross-correlation.
 """
 
 from __future__ import annotations
@@ -46,9 +46,14 @@ def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return (top * (1 - ty) + bottom * ty).astype(np.float32)
 
 
-def edge_offset(image: np.ndarray, reference: np.ndarray) -> float:
-    """Length (pixels) of the shift that best aligns ``image``'s edges with ``reference``'s: phase correlation
-    of their gradient magnitudes (Hann-windowed), the peak refined to sub-pixel by a parabola on each axis."""
+MAX_OFFSET_PX = 8  # edge_offset searches shifts up to this many pixels (a misplaced photo is not "aligned")
+
+
+def edge_offset(image: np.ndarray, reference: np.ndarray, max_shift: int = MAX_OFFSET_PX) -> float:
+    """Length (pixels) of the shift that best aligns ``image``'s edges with ``reference``'s: cross-correlation of
+    their gradient magnitudes (Hann-windowed), the peak searched within ``max_shift`` pixels of no shift and
+    refined to sub-pixel by a parabola on each axis. A blurred image (a render upsampled) correlates weakly
+    everywhere: without the search window its peak can land anywhere."""
 
     def edges(img: np.ndarray) -> np.ndarray:
         g = img.mean(axis=2) if img.ndim == 3 else img
@@ -59,18 +64,19 @@ def edge_offset(image: np.ndarray, reference: np.ndarray) -> float:
 
     fa, fb = np.fft.rfft2(edges(image)), np.fft.rfft2(edges(reference))
     cross = fa * np.conj(fb)
-    corr = np.fft.irfft2(cross / np.maximum(np.abs(cross), 1e-12), s=image.shape[:2])
-    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    corr = np.fft.irfft2(cross, s=image.shape[:2])  # plain cross-correlation: a smooth peak a parabola fits
+    H, W = corr.shape
+    k = int(max_shift)
+    window = np.roll(np.roll(corr, k, axis=0), k, axis=1)[:2 * k + 1, :2 * k + 1]  # shifts -k..k on each axis
+    wy, wx = np.unravel_index(int(np.argmax(window)), window.shape)
+    iy, ix = (wy - k) % H, (wx - k) % W
 
     def refine(c_m: float, c_0: float, c_p: float) -> float:
         d = c_m - 2 * c_0 + c_p
         return 0.0 if d == 0 else 0.5 * (c_m - c_p) / d
 
-    H, W = corr.shape
-    dy = iy + refine(corr[(iy - 1) % H, ix], corr[iy, ix], corr[(iy + 1) % H, ix])
-    dx = ix + refine(corr[iy, (ix - 1) % W], corr[iy, ix], corr[iy, (ix + 1) % W])
-    dy = dy - H if dy > H / 2 else dy
-    dx = dx - W if dx > W / 2 else dx
+    dy = (wy - k) + refine(corr[(iy - 1) % H, ix], corr[iy, ix], corr[(iy + 1) % H, ix])
+    dx = (wx - k) + refine(corr[iy, (ix - 1) % W], corr[iy, ix], corr[iy, (ix + 1) % W])
     return float(np.hypot(dx, dy))
 
 

@@ -59,7 +59,10 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto") -> Ren
         r = out.depth * ray_length_factor(view.camera)
         assert out.A is not None and out.B is not None
         maps = coefficients_from_maps(out.A, out.B, r, binf, out.alpha)
-    return RenderedView(view.camera, out.depth.astype(np.float32), out.alpha.astype(np.float32), maps)
+    # the model's own J where it covers the pixel (premultiplied over black: normalised by alpha), in the space
+    # its physics ran in: the restoration's prior where the photo's signal is too weak
+    J = np.clip(out.J / np.maximum(out.alpha, 0.5)[..., None], 0.0, 1.0).astype(np.float32)
+    return RenderedView(view.camera, out.depth.astype(np.float32), out.alpha.astype(np.float32), maps, J)
 
 
 def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: LensCamera, view: RenderedView, *,

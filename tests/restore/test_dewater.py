@@ -22,6 +22,28 @@ def test_gain_cap_holds_per_channel():
         assert (np.diff(c[0]) <= 1e-7).all()  # confidence falls with range
 
 
+def test_with_the_models_prior_the_gain_never_exceeds_the_cap_and_far_pixels_lean_on_the_model():
+    """J = (A(I − B) + λ²J_m) / (A² + λ²), λ = 1/(2 max_gain): dJ/dI ≤ max_gain at every range; near, the photo's
+    own (I − B)/A; far, the model's J_m; the confidence is the photo's share A² / (A² + λ²)."""
+    W = 200
+    r = np.tile(np.linspace(0, 60, W, dtype=np.float32), (2, 1))
+    surf = np.ones((2, W), bool)
+    kA, kB, binf = np.array([0.5, 0.2, 0.1]), np.array([0.3, 0.2, 0.1]), np.array([0.05, 0.2, 0.3])
+    prior = np.full((2, W, 3), 0.4, np.float32)
+    for g in (2.0, 8.0, 30.0):
+        lo, hi = np.full((2, W, 3), 0.30, np.float32), np.full((2, W, 3), 0.31, np.float32)
+        J0, c, _ = dewater(lo, r, surf, kA, kB, binf, max_gain=g, out_max=65535, prior=prior)
+        J1, _, _ = dewater(hi, r, surf, kA, kB, binf, max_gain=g, out_max=65535, prior=prior)
+        gain = (J1.astype(np.float64) - J0) / 65535 / 0.01
+        assert gain.max() <= g * (1 + 1e-3) and gain.max() > 0.9 * g  # the cap is reached, never passed
+        assert abs(c[0, 0] - 1 / (1 + (0.5 / g) ** 2)) < 1e-6 and c[0, -1] < 1e-3 and (np.diff(c[0]) <= 1e-7).all()
+    A_far = np.exp(-kA * 60)
+    assert np.allclose(J0[0, -1] / 65535, 0.4, atol=2e-3 + A_far.max())  # far: the model's value
+    B0 = binf * -np.expm1(-kB * float(r[0, 1]))
+    near = (0.30 - B0) / np.exp(-kA * float(r[0, 1]))
+    assert np.allclose(J0[0, 1] / 65535, near, atol=2e-3)  # near: the photo's own (I − B)/A
+
+
 def test_no_surface_is_the_photo_with_zero_confidence():
     rng = np.random.default_rng(0)
     img = (rng.random((6, 7, 3)) * 255).astype(np.uint8)
