@@ -102,6 +102,8 @@ def score_restored(job: Path, gt_root: Path, model: TrainedModel, views: Sequenc
         mask = gt.depth_original(v.name) < FAR_DEPTH_M
         restored = read_image(layout.restored / files[v.name])
         photo = read_image(layout.images / v.name)
+        conf_path = layout.confidence / f"{Path(v.name).stem}.png"
+        confidence = read_image(conf_path)[..., 0] if conf_path.is_file() else None
         J = displayed(render_outputs(model.gaussians, v, model.medium, model.sh_degree, backend, model.background),
                       model.colour_space).J
         render = warp_to_photo(J, v.camera, lenses[v.name])
@@ -109,7 +111,8 @@ def score_restored(job: Path, gt_root: Path, model: TrainedModel, views: Sequenc
                "restored_psnr": pooled_psnr([(restored, truth)], [mask]),
                "render_psnr": pooled_psnr([(render, truth)], [mask]),
                "photo_psnr": pooled_psnr([(photo, truth)], [mask]),
-               "restored_offset_px": edge_offset(restored, truth), "render_offset_px": edge_offset(render, truth)}
+               "restored_offset_px": edge_offset(restored, truth), "render_offset_px": edge_offset(render, truth),
+               "confidence_error_correlation": _correlation(confidence, np.abs(restored - truth).mean(-1), mask)}
         per_view.append(row)
         pools["test" if row["held_out"] else "train"].append((restored, render, photo, truth, mask))
     out: dict[str, Any] = {"compared": "the 8-bit restored files and the model's J render carried into each "
@@ -128,5 +131,22 @@ def score_restored(job: Path, gt_root: Path, model: TrainedModel, views: Sequenc
                   "photo_psnr": pooled_psnr([(p, t) for _, _, p, t, _ in items], masks),
                   "restored_offset_px": float(np.mean([r["restored_offset_px"] for r in rows])),
                   "render_offset_px": float(np.mean([r["render_offset_px"] for r in rows])),
-                  "min_gain_over_render_db": float(min(r["restored_psnr"] - r["render_psnr"] for r in rows))}
+                  "min_gain_over_render_db": float(min(r["restored_psnr"] - r["render_psnr"] for r in rows)),
+                  "confidence_error_correlation": _mean([r["confidence_error_correlation"] for r in rows])}
     return out
+
+
+def _correlation(confidence: np.ndarray | None, error: np.ndarray, mask: np.ndarray) -> float | None:
+    """Pearson correlation of the confidence map and the restored photo's absolute error over the restored seabed
+    pixels (confidence > 0): negative when low confidence marks where the restoration is wrong."""
+    if confidence is None:
+        return None
+    m = mask & (confidence > 0)
+    if m.sum() < 10 or confidence[m].std() == 0 or error[m].std() == 0:
+        return None
+    return float(np.corrcoef(confidence[m], error[m])[0, 1])
+
+
+def _mean(values: list[float | None]) -> float | None:
+    kept = [v for v in values if v is not None]
+    return float(np.mean(kept)) if kept else None

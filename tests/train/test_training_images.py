@@ -1,0 +1,46 @@
+"""The train stage's images: read one at a time at the training size, exactly what the trainer made of the
+full-size images before (so models do not change), and decoded to linear light for colour_space "linear"."""
+
+import numpy as np
+import torch
+
+from pipeline.scene.colour import srgb_to_linear
+from pipeline.scene.images import write_image
+from pipeline.scene.records import Camera, View
+from pipeline.train.setup import load_training_images, prepare_images
+
+
+def _views(tmp_path, n=3, w=64, h=48):
+    rng = np.random.default_rng(0)
+    views = []
+    for k in range(n):
+        img = rng.random((h, w, 3)).astype(np.float32)
+        path = tmp_path / f"v{k}.png"
+        write_image(path, img, bits=16)
+        views.append(View(path.name, Camera(w, h, 50.0, 50.0, w / 2, h / 2), np.eye(3), np.zeros(3), path))
+    return views
+
+
+def test_loaded_at_training_size_equals_the_trainers_own_shrink(tmp_path):
+    from pipeline.scene.loader import load_view_image
+
+    views = _views(tmp_path)
+    full = [load_view_image(v) for v in views]
+    for down in (1, 2, 4):
+        small = load_training_images(views, down)
+        v1, t1 = prepare_images(views, full, down, torch.device("cpu"))
+        v2, t2 = prepare_images(views, small, down, torch.device("cpu"))
+        assert [v.camera for v in v1] == [v.camera for v in v2]
+        assert all(torch.equal(a, b) for a, b in zip(t1, t2, strict=True))  # bit for bit
+
+
+def test_linear_light_is_decoded_before_averaging(tmp_path):
+    from pipeline.scene.loader import load_view_image
+
+    views = _views(tmp_path, n=1)
+    lin = load_training_images(views, 2, "linear")[0].numpy()
+    full = srgb_to_linear(load_view_image(views[0]).astype(np.float64))
+    expect = full.reshape(24, 2, 32, 2, 3).mean(axis=(1, 3))
+    assert np.abs(lin - expect).max() < 1e-6
+    srgb = load_training_images(views, 2, "srgb")[0].numpy()
+    assert lin.mean() < srgb.mean() - 0.1  # decoding darkens mid-tones (0.5 -> 0.21)
