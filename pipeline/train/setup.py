@@ -68,7 +68,8 @@ def prepare_images(
     views: Sequence[View], images: Sequence[ImageLike], downscale: int, device: torch.device
 ) -> tuple[list[View], list[Tensor]]:
     """Check images against their cameras and shrink both by ``downscale`` (area averaging).
-    Images may also come already at the shrunk size (:func:`load_training_images`).
+    Images may also come already shrunk by an integer up to ``downscale`` (:func:`load_training_images` at the
+    job's training size, which the mode probe shrinks further).
     Returns the (rescaled) views and float32 targets [H, W, 3] on ``device``."""
     if len(views) != len(images):
         raise ValueError(f"{len(views)} views but {len(images)} images")
@@ -78,9 +79,14 @@ def prepare_images(
     for view, img in zip(views, images, strict=True):
         shape = tuple(np.shape(img))
         small = scaled_view(view, downscale) if downscale > 1 else view
-        full = (view.camera.height, view.camera.width, 3)
-        if shape not in (full, (small.camera.height, small.camera.width, 3)):
-            raise ValueError(f"image of {view.name!r} is {shape}, camera says {full[:2] + (3,)}")
+        # the full size, or a copy shrunk by an integer up to this downscale (the train stage loads its images at
+        # the job's training size; the mode probe trains these at its own, smaller, size)
+        sizes = {(scaled_view(view, k).camera.height, scaled_view(view, k).camera.width, 3)
+                 for k in range(1, downscale + 1)}
+        if shape not in sizes:
+            full = (view.camera.height, view.camera.width, 3)
+            raise ValueError(f"image of {view.name!r} is {shape}, camera says {full} (or a copy shrunk by an "
+                             f"integer up to {downscale})")
         out_views.append(small)
         targets.append(shrink_image(img, small.camera.height, small.camera.width, device))
     return out_views, targets

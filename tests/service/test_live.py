@@ -148,6 +148,10 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
     restored = sorted(p for p in by_path if p.startswith("output/renders/restored/") and p.endswith(".png"))
     with_water = [p for p in by_path if p.startswith("output/renders/with_water/") and p.endswith(".png")]
     assert len(restored) >= 10 and len(restored) == len(with_water), restored  # one per registered view
+    # issue 14: the uploaded photos themselves, de-watered, each with its confidence map
+    photos = [p for p in by_path if p.startswith("output/restored/")]
+    confidence = [p for p in by_path if p.startswith("output/confidence/") and not p.endswith("_surface.png")]
+    assert len(photos) == len(restored) == len(confidence), (photos, confidence)
     png = c.get(by_path[restored[0]]["url"])
     assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
     for a in arts:

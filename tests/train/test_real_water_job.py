@@ -37,7 +37,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.skipif(not FRAMES.is_dir(), reason="
 def _colour(folder: Path) -> tuple[float, float, float]:
     """Mean R/G over the views, share of clipped red, share of black pixels."""
     rg, red, black = [], [], []
-    for f in sorted(folder.glob("*.png")):
+    for f in sorted(p for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg")):
         a = read_image(f)
         rg.append(a[..., 0].mean() / max(a[..., 1].mean(), 1e-6))
         red.append((a[..., 0] > 0.98).mean())
@@ -64,3 +64,15 @@ def test_real_green_water_gets_a_medium_and_its_colour_back(tmp_path, record_pro
     assert red < 0.002, red  # no clipped red
     assert black < 0.05, black  # no sand drawn as far-away veil
     assert q["far_share_max"] is not None and q["far_share_max"] <= 0.05, q["far_share_max"]
+    # issue 14: the photos themselves come back de-watered at their own 400x300 in their own lens geometry,
+    # with the same colour shift, and the report shows them
+    restore = json.loads(job.restore_result.read_text())
+    assert restore["restored"] >= 17 and all((v["width"], v["height"]) == (400, 300) for v in restore["views"])
+    for v in restore["views"][:3]:
+        assert read_image(job.restored / v["file"]).shape == read_image(src / v["name"]).shape == (300, 400, 3)
+    rg_photos_in, _, _ = _colour(src)
+    rg_photos, red_photos, _ = _colour(job.restored)
+    record_property("photos", {"rg": [rg_photos_in, rg_photos], "clipped_red": red_photos})
+    assert rg_photos > rg_photos_in + 0.02 and red_photos < 0.002, (rg_photos_in, rg_photos, red_photos)
+    html = job.report_html.read_text()
+    assert f"{restore['restored']} photos restored at their own resolution (400x300)" in html

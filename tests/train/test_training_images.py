@@ -44,3 +44,16 @@ def test_linear_light_is_decoded_before_averaging(tmp_path):
     assert np.abs(lin - expect).max() < 1e-6
     srgb = load_training_images(views, 2, "srgb")[0].numpy()
     assert lin.mean() < srgb.mean() - 0.1  # decoding darkens mid-tones (0.5 -> 0.21)
+
+
+def test_the_probe_shrinks_training_size_images_further(tmp_path):
+    """The mode probe trains at its own, smaller size: images loaded at the job's training size (here half) must
+    shrink again to it (a 400x300 real set at max_width 200 failed the probe before)."""
+    views = _views(tmp_path, n=2, w=96, h=72)
+    half = load_training_images(views, 2)
+    v, t = prepare_images(views, half, 4, torch.device("cpu"))
+    assert [tuple(x.shape) for x in t] == [(18, 24, 3)] * 2 and v[0].camera.width == 24
+    import pytest
+
+    with pytest.raises(ValueError, match="camera says"):
+        prepare_images(views, [np.zeros((10, 10, 3), np.float32)] * 2, 4, torch.device("cpu"))
