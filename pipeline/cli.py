@@ -131,7 +131,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
             print(f"      {stage}: {message}", flush=True)
             last["stage"] = stage
 
-    opts = JobOptions(source=str(scene_dir / "images"), mode="dualphys", iterations=args.iterations)
+    # the physics in the space the generated water was applied in (the generator's default: sRGB values)
+    opts = JobOptions(source=str(scene_dir / "images"), mode="dualphys", iterations=args.iterations,
+                      colour_space=synth.water_space)
     job = JobLayout(out / "job")
     res = run_job(job.root, opts, StageContext(on_progress=progress))
     print(f"[2/3] job done in {time.perf_counter() - t0:.0f} s -> {job.root}")

@@ -49,8 +49,8 @@ def test_demo_prints_real_numbers_and_where_the_report_is(tmp_path, capsys):
 @pytest.mark.slow
 def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
     job = tmp_path / "job"
-    argv = ["run", str(scene / "images"), "--out", str(job), "--mode", "homogeneous", "--iterations", "60",
-            "--max-width", "80"]
+    argv = ["run", str(scene / "images"), "--out", str(job), "--mode", "homogeneous", "--colour-space", "srgb",
+            "--iterations", "60", "--max-width", "80"]
     assert main(argv) == 0
     first = _last_json(capsys.readouterr().out)
     assert first["skipped"] == [] and first["mode"] == "homogeneous"

@@ -36,9 +36,12 @@ class JobOptions:
     metric_scale: float | None = field(default=None, metadata={"help": "metres per scene unit, when known"})
     iterations: int | None = field(default=None, metadata={"help": "override the preset's iteration count"})
     seed: int = field(default=0, metadata={"help": "the seed of SfM and training"})
-    colour_space: str = field(default="srgb", metadata={
-        "help": "where the water physics runs: srgb (on the photos' encoded values) | linear (on linear light: "
-                "the photos decoded with the sRGB curve, the results encoded back)"})
+    # "linear" by measurement (docs/DECISIONS.md, "Colour space"): a camera's water acts on light, which the camera
+    # then encodes; our generator's default scenes apply it to encoded values and need "srgb"
+    colour_space: str = field(default="linear", metadata={
+        "help": "where the water physics runs: linear (default: on linear light, the photos decoded with the "
+                "sRGB curve and the results encoded back, as a camera's JPEGs need) | srgb (on the encoded "
+                "values)"})
     restore_format: str = field(default="auto", metadata={
         "help": "the restored photos' files: auto (each as its input: 8-bit JPEG or PNG) | tiff16 (16-bit TIFF)"})
     max_gain: float = field(default=8.0, metadata={

@@ -33,7 +33,8 @@ ITERATIONS = 150
 def job(tmp_path_factory):
     root = tmp_path_factory.mktemp("report")
     scene = generate_scene(SynthConfig(views=12, width=96, height=72, preset="medium", seed=0), root / "scene")
-    results = run_job(root / "job", JobOptions(source=str(scene / "images"), mode="dualphys", iterations=ITERATIONS))
+    results = run_job(root / "job", JobOptions(source=str(scene / "images"), mode="dualphys", iterations=ITERATIONS,
+                                               colour_space="srgb"))  # the generator's water acts on sRGB values
     return root / "job", results
 
 

@@ -31,7 +31,7 @@ def job(tmp_path_factory):
     scene = generate_photo_scene(PhotoSynthConfig(views=16, width=400, height=300, preset="medium", seed=0,
                                                   distortion=(-0.12, 0.02)), root / "scene")
     run_job(root / "job", JobOptions(source=str(scene / "images"), mode="homogeneous", iterations=400,
-                                     max_width=100))
+                                     max_width=100, colour_space="srgb"))  # the scene's water acts on sRGB values
     return scene, JobLayout(root / "job")
 
 
