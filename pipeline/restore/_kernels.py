@@ -163,20 +163,19 @@ def _linear_to_srgb(x):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True)
-def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max, prior, has_prior
+def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max, prior, has_prior, lam2
             ):  # pragma: no cover - numba
     """The physics per pixel (twin: ``pipeline.restore.dewater.dewater_reference``).
 
     img [n, W, 3] any dtype (× ``scale`` → [0, 1]); r [n, W] float32 range; surface [n, W] bool; k_A, k_B
     [n, W, 3] or [1, 1, 3] float32; B_inf [3]; max_gain > 1; prior [n, W, 3] float32 (the model's J, in the
-    physics' space) read when ``has_prior``. Writes J [n, W, 3] (uint8 or uint16) quantised to 0..out_max;
-    returns (confidence [n, W] float32, clipped pixel count)."""
+    physics' space) read when ``has_prior``, with weights lam2 [3] (each ≥ (0.5 / max_gain)²). Writes J
+    [n, W, 3] (uint8 or uint16) quantised to 0..out_max; returns (confidence [n, W] float32, clipped count)."""
     n, W, _ = img.shape
     conf = np.zeros((n, W), np.float32)
     clipped = np.zeros(n, np.int64)
     a_min = 1.0 / max_gain
     log_g = np.log(max_gain)
-    lam2 = (0.5 / max_gain) ** 2  # the prior's weight: the gain A / (A² + lam2) peaks at max_gain
     full_A = 1 if k_A.shape[0] > 1 else 0  # index multipliers: 0 reads the [1, 1, 3] constant
     full_B = 1 if k_B.shape[0] > 1 else 0
     for i in prange(n):
@@ -198,8 +197,8 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
                 if linear:
                     x = _srgb_to_linear(x)
                 if has_prior:
-                    v = (A * (x - B) + lam2 * np.float64(prior[i, j, c])) / (A * A + lam2)
-                    cmin = min(cmin, A * A / (A * A + lam2))
+                    v = (A * (x - B) + lam2[c] * np.float64(prior[i, j, c])) / (A * A + lam2[c])
+                    cmin = min(cmin, A * A / (A * A + lam2[c]))
                 else:
                     Ae = max(A, a_min)
                     cmin = min(cmin, np.log(Ae * max_gain) / log_g)

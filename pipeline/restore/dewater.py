@@ -3,11 +3,13 @@
 Rules (docs/DECISIONS.md, "Restoring the originals"):
 - With the model's own restored radiance J_m of the pixel (``prior``: the multi-view reconstruction, rendered
   and sampled into the photo; what the restore stage passes): the least-squares J of
-  (I − B − A·J)² + λ²·(J − J_m)², λ = 1/(2·max_gain), per channel:
-      J = (A·(I − B) + λ²·J_m) / (A² + λ²).
+  (I − B − A·J)² + λ²·(J − J_m)² per channel:
+      J = (A·(I − B) + λ²·J_m) / (A² + λ²),
+  λ² = σ_n² / σ_d², the photo's noise against what the model lacks, measured per photo and channel
+  (:func:`prior_weights`), never below (1/(2·max_gain))².
   Where the water lets light through (A ≫ λ) this is (I − B)/A, the photo's own detail; where it does not (far
   range, red in turbid water) the photo's signal is below its noise and J leans on the model, which saw that
-  surface from nearer views. The gain dJ/dI = A / (A² + λ²) is at most 1/(2λ) = ``max_gain``: no channel is
+  surface from nearer views. The gain dJ/dI = A / (A² + λ²) is at most 1/(2λ) ≤ ``max_gain``: no channel is
   ever amplified more. Confidence c = min over channels of A² / (A² + λ²): the photo's share of the result
   (1: all the photo's own, 0: all the model's); 0 where there is no surface.
 - Without a prior (a bare photo and a medium): the gain cap A_eff = max(A, 1/max_gain) per channel, and
@@ -46,7 +48,8 @@ def _k(k: np.ndarray) -> np.ndarray:
 
 def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray, k_B: np.ndarray,
             B_inf: np.ndarray, *, max_gain: float = 8.0, space: str = "srgb", out_max: int = 255,
-            scale: float | None = None, prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+            scale: float | None = None, prior: np.ndarray | None = None, lam2: np.ndarray | None = None,
+            ) -> tuple[np.ndarray, np.ndarray, int]:
     """Restore a block of pixels.
 
     Args:
@@ -57,6 +60,7 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
         uint16 J.
         scale: multiplies img to [0, 1]; default from its dtype (1/255, 1/65535, 1).
         prior: [n, W, 3] the model's J of each pixel in the physics' space (linear light for "linear"), or None.
+        lam2: [3] the prior's weight λ² per channel (:func:`prior_weights`); default and floor (0.5/max_gain)².
     Returns (J [n, W, 3] uint8 or uint16, confidence [n, W] float32 in [0, 1], clipped pixel count)."""
     from pipeline.restore._kernels import dewater as kernel
 
@@ -68,13 +72,36 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
                            np.ascontiguousarray(surface, np.bool_), _k(k_A), _k(k_B),
                            np.asarray(B_inf, np.float64).reshape(3), float(max_gain), space == "linear", J,
                            int(out_max), np.ascontiguousarray(prior if prior is not None else np.zeros((1, 1, 3)),
-                                                              np.float32), prior is not None)
+                                                              np.float32), prior is not None,
+                           _lam2(lam2, max_gain))
     return J, conf, int(clipped)
+
+
+def _lam2(lam2: np.ndarray | None, max_gain: float) -> np.ndarray:
+    """λ² per channel [3] float64, never below (0.5 / max_gain)² (so the gain stays ≤ max_gain)."""
+    floor = (0.5 / max_gain) ** 2
+    if lam2 is None:
+        return np.full(3, floor)
+    return np.maximum(np.nan_to_num(np.asarray(lam2, np.float64).reshape(3), nan=floor), floor)
+
+
+def prior_weights(residual_sq: np.ndarray, residual_lag: np.ndarray, a_sq: np.ndarray, max_gain: float
+                  ) -> np.ndarray:
+    """λ² per channel from a photo's residual against the model, e = I − (A·J_m + B) = A·d + n: d what the
+    model lacks (spatially correlated: detail, colour error), n the photo's noise (white). The lag-1 products
+    of e (horizontal neighbours) keep A²σ_d² and lose the noise, so σ_n² = E[e²] − E[e_x e_x+1] and
+    σ_d² = E[e_x e_x+1] / E[A²]; the least-squares weight is λ² = σ_n² / σ_d² (floored at (0.5/max_gain)²).
+
+    Args (each [3], means over the surface pixels of the sampled rows): residual_sq E[e²], residual_lag
+    E[e_x·e_x+1], a_sq E[A²]. Returns lam2 [3]."""
+    noise = np.maximum(residual_sq - residual_lag, 1e-12)
+    detail = np.maximum(residual_lag, 1e-12) / np.maximum(a_sq, 1e-12)
+    return _lam2(noise / detail, max_gain)
 
 
 def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,
                       max_gain: float = 8.0, space: str = "srgb", prior: np.ndarray | None = None,
-                      ) -> tuple[np.ndarray, np.ndarray, int]:
+                      lam2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Slow twin of :func:`dewater` (numpy, float64, unquantised). img float [n, W, 3] in [0, 1].
     Returns (J float64 [n, W, 3] in [0, 1], confidence [n, W], clipped pixel count)."""
     _check(max_gain, space)
@@ -88,9 +115,9 @@ def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, mediu
         raw = (x - B) / Ae
         share = np.log(Ae * max_gain) / np.log(max_gain)
     else:
-        lam2 = (0.5 / max_gain) ** 2
-        raw = (A * (x - B) + lam2 * np.asarray(prior, np.float64)) / (A * A + lam2)
-        share = A * A / (A * A + lam2)
+        l2 = _lam2(lam2, max_gain)
+        raw = (A * (x - B) + l2 * np.asarray(prior, np.float64)) / (A * A + l2)
+        share = A * A / (A * A + l2)
     J = np.clip(raw, 0, 1)
     J = linear_to_srgb(J) if space == "linear" else J
     surface = np.asarray(surface, bool)

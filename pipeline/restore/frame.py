@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
 
-from pipeline.restore.dewater import dewater
+from pipeline.restore.dewater import dewater, prior_weights
 from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.guided import (
     DEFAULT_EPS,
@@ -30,8 +30,11 @@ from pipeline.restore.guided import (
 from pipeline.restore.lens import DEFAULT_TOL, LensGrid
 from pipeline.restore.records import LensCamera, RenderedView
 from pipeline.restore.sample import sample_maps
+from pipeline.scene.colour import srgb_to_linear
 
 logger = logging.getLogger(__name__)
+
+CALIBRATION_BANDS = 6  # row bands of a photo that FrameRestorer.calibrate measures the prior's weight on
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,7 @@ class FrameResult:
     surface: np.ndarray | None = None  # [H, W] bool
     clipped: int = 0  # surface pixels with a channel clipped to [0, 1]
     surface_pixels: int = 0
+    lam2: list[float] | None = None  # the prior's weight per channel (FrameRestorer.calibrate), None: none
     seconds: float = 0.0
     paths: dict[str, Path] = field(default_factory=dict)
 
@@ -92,6 +96,66 @@ class FrameRestorer:
             y1 = min(H, y0 + self.band_rows)
             yield max(0, y0 - self.halo), y0, y1, min(H, y1 + self.halo)
 
+    lam2: np.ndarray | None = None  # the prior's weight per channel (calibrate); None: the floor (0.5/max_gain)²
+
+    def calibration_bands(self, n: int = CALIBRATION_BANDS) -> list[tuple[int, int, int, int]]:
+        """``n`` of :meth:`bands`, evenly spread over the photo: where :meth:`calibrate` measures."""
+        all_bands = list(self.bands())
+        if len(all_bands) <= n:
+            return all_bands
+        return [all_bands[round(i * (len(all_bands) - 1) / (n - 1))] for i in range(n)]
+
+    def calibrate(self, rows_of: Callable[[int, int], np.ndarray]) -> np.ndarray | None:
+        """Measure the photo's noise against what the model lacks (:func:`~pipeline.restore.dewater.prior_weights`)
+        on :meth:`calibration_bands` (``rows_of(e0, e1)``: the photo's rows, read forwards) and set
+        :attr:`lam2`. No prior: nothing to weigh, None."""
+        if self.jmap is None:
+            return None
+        sums, n_sq, n_lag = np.zeros((3, 3)), 0, 0
+        for e0, y0, y1, e1 in self.calibration_bands():
+            x, _, r, surface, k_A, k_B, prior = self._inputs(rows_of(e0, e1), e0, y0, y1)
+            m = self.view.medium
+            A = np.exp(-np.clip(np.asarray(k_A, np.float64) * r[..., None], 0, 80))
+            B = m.B_inf * -np.expm1(-np.clip(np.asarray(k_B, np.float64) * r[..., None], 0, 80))
+            e = x - (prior * A + B)
+            both = surface[:, :-1] & surface[:, 1:]
+            sums[0] += (e[surface] ** 2).sum(0)
+            sums[1] += (e[:, :-1][both] * e[:, 1:][both]).sum(0)
+            sums[2] += (A[surface] ** 2).sum(0)
+            n_sq, n_lag = n_sq + int(surface.sum()), n_lag + int(both.sum())
+        if n_lag < 100:
+            return None
+        self.lam2 = prior_weights(sums[0] / n_sq, sums[1] / n_lag, sums[2] / n_sq, self.opt.max_gain)
+        return self.lam2
+
+    def _inputs(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
+        """What the physics needs for rows [y0, y1): (the photo's rows in [0, 1] in the physics' space, float64
+        [n, W, 3]; the scale of the stored values; range r [n, W]; surface [n, W]; k_A; k_B; prior or None)."""
+        from pipeline.restore._kernels import luminance
+
+        e1 = e0 + rows.shape[0]
+        scale = 1.0 / np.iinfo(rows.dtype).max if np.issubdtype(rows.dtype, np.integer) else 1.0
+        xn, yn = self.grid.rays(e0, e1)
+        vals, inside = sample_maps(self.maps, xn, yn, self.view.camera)
+        z = vals[..., 0]
+        if self.radius > 0:
+            z = fast_guided_filter(luminance(np.ascontiguousarray(rows), scale), z, self.radius, self.opt.eps,
+                                   self.s)
+        c = slice(y0 - e0, y1 - e0)
+        xc, yc, z = xn[c], yn[c], z[c]
+        surface = inside[c] & (vals[c, :, 1] >= 0.5) & (z > 0)
+        r = (z * np.sqrt(1.0 + xc * xc + yc * yc)).astype(np.float64)
+        m = self.view.medium
+        k_A, k_B = m.k_A, m.k_B
+        if self.kmaps is not None:
+            k, _ = sample_maps(self.kmaps, xc, yc, self.view.camera)
+            k_A, k_B = k[..., :3], k[..., 3:]
+        prior = None if self.jmap is None else sample_maps(self.jmap, xc, yc, self.view.camera)[0]
+        x = rows[c].astype(np.float64) * scale
+        if self.opt.space == "linear":
+            x = srgb_to_linear(np.clip(x, 0, 1))
+        return x, scale, r, surface, k_A, k_B, prior
+
     def band(self, rows: np.ndarray, e0: int, y0: int, y1: int, out_max: int = 255
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """Restore rows [y0, y1) given the photo's rows [e0, e0 + len(rows)) (uint8/uint16/float [m, W, 3]).
@@ -117,7 +181,7 @@ class FrameRestorer:
             k_A, k_B = k[..., :3], k[..., 3:]
         prior = None if self.jmap is None else sample_maps(self.jmap, xc, yc, self.view.camera)[0]
         J, conf, clipped = dewater(rows[c], r, surface, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
-                                   space=self.opt.space, out_max=out_max, scale=scale, prior=prior)
+                                   space=self.opt.space, out_max=out_max, scale=scale, prior=prior, lam2=self.lam2)
         return J, conf, surface, clipped
 
 
@@ -130,6 +194,7 @@ def restore_array(photo: np.ndarray, lens: LensCamera, view: RenderedView,
     if (W, H) != (lens.width, lens.height):
         raise ValueError(f"photo is {W}x{H}, lens camera {lens.width}x{lens.height}")
     fr = FrameRestorer(lens, view, options)
+    fr.calibrate(lambda e0, e1: photo[e0:e1])
     res = FrameResult(J=np.empty((H, W, 3), np.uint8 if out_max == 255 else np.uint16),
                       confidence=np.empty((H, W), np.float32), surface=np.empty((H, W), bool))
     for e0, y0, y1, e1 in fr.bands():
@@ -138,6 +203,7 @@ def restore_array(photo: np.ndarray, lens: LensCamera, view: RenderedView,
         res.clipped += clipped
     res.surface_pixels = int(res.surface.sum())
     res.seconds = time.perf_counter() - t
+    res.lam2 = None if fr.lam2 is None else [float(x) for x in fr.lam2]
     return res
 
 
@@ -154,6 +220,12 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
     if (reader.width, reader.height) != (lens.width, lens.height):
         raise ValueError(f"{src} is {reader.width}x{reader.height}, lens camera {lens.width}x{lens.height}")
     fr = FrameRestorer(lens, view, options)
+    if fr.jmap is not None:  # a first, forward pass over a few bands: the photo's noise against the model
+        calib = BandReader(src)
+        try:
+            fr.calibrate(calib.rows)
+        finally:
+            calib.close()
     W, H = reader.width, reader.height
     j_path = restored_path(src, out_dir, tiff16)
     sixteen = j_path.suffix == ".tif"
@@ -180,6 +252,7 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
         for w in writers.values():
             w.close()
     res.seconds = time.perf_counter() - t
+    res.lam2 = None if fr.lam2 is None else [float(x) for x in fr.lam2]
     logger.info("restored %s: %.2f s, %d surface pixels, %d clipped", src.name, res.seconds, res.surface_pixels,
                 res.clipped)
     return res

@@ -81,4 +81,4 @@ def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: Len
     n = lens.width * lens.height
     return {"file": res.paths["J"].name, "width": lens.width, "height": lens.height,
             "surface": round(res.surface_pixels / n, 5), "clipped": round(res.clipped / n, 5),
-            "camera": lens.model}
+            "camera": lens.model, "prior_weight": res.lam2}

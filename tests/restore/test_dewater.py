@@ -77,3 +77,21 @@ def test_coefficients_from_rendered_maps_roundtrip():
     assert np.abs(m.k_A - kA).max() < 1e-5  # filled pixels take their neighbours' (here equal) values
     sat = coefficients_from_maps(np.zeros((3, 3, 3)), np.ones((3, 3, 3)), np.ones((3, 3)), binf)
     assert np.isfinite(sat.k_A).all() and np.isfinite(sat.k_B).all() and (sat.k_A >= 0).all()
+
+
+def test_prior_weights_separate_the_photos_noise_from_what_the_model_lacks():
+    """e = A·d + n with d smooth (what the model lacks) and n white (the photo's noise): the lag-1 products keep
+    A²σ_d² and drop σ_n², so λ² = σ_n² / σ_d² comes back; never below the cap's floor."""
+    from pipeline.restore.dewater import prior_weights
+
+    rng = np.random.default_rng(4)
+    H, W = 400, 600
+    k = np.exp(-0.5 * (np.arange(-8, 9) / 3.0) ** 2)
+    d = np.apply_along_axis(lambda r: np.convolve(r, k / np.sqrt((k ** 2).sum()), "same"), 1,
+                            rng.normal(0, 1, (H, W)))  # unit variance, strongly correlated along rows
+    sd, sn, A = np.array([0.02, 0.05, 0.1]), np.array([0.01, 0.01, 0.01]), np.array([0.8, 0.5, 0.3])
+    e = A * sd * d[..., None] + sn * rng.normal(0, 1, (H, W, 3))
+    lam2 = prior_weights((e ** 2).mean((0, 1)), (e[:, :-1] * e[:, 1:]).mean((0, 1)), A ** 2, max_gain=8.0)
+    # within 30 %: detail that is not perfectly smooth (lag-1 correlation 0.97 here) counts partly as noise
+    assert np.allclose(lam2, (sn / sd) ** 2, rtol=0.3), (lam2, (sn / sd) ** 2)
+    assert (prior_weights(np.full(3, 1e-6), np.full(3, 1e-6), np.ones(3), 8.0) == (0.5 / 8) ** 2).all()

@@ -43,7 +43,9 @@ def test_dewater_matches_reference_both_spaces_and_map_coefficients():
         m = MediumMaps(np.asarray(kA, np.float32), np.asarray(kB, np.float32), np.array([0.1, 0.2, 0.3]))
         for space, prior in (("srgb", None), ("linear", None), ("srgb", rng.random((13, 29, 3)).astype(np.float32)),
                              ("linear", rng.random((13, 29, 3)).astype(np.float32))):
-            J, c, n = dewater(img, r, surf, m.k_A, m.k_B, m.B_inf, space=space, out_max=65535, prior=prior)
-            Jr, cr, nr = dewater_reference(img, r, surf, m, space=space, prior=prior)
+            lam2 = None if prior is None else np.array([0.01, 0.2, 0.0])  # the last under the floor: floored
+            J, c, n = dewater(img, r, surf, m.k_A, m.k_B, m.B_inf, space=space, out_max=65535, prior=prior,
+                              lam2=lam2)
+            Jr, cr, nr = dewater_reference(img, r, surf, m, space=space, prior=prior, lam2=lam2)
             assert np.abs(J / 65535 - Jr).max() < 2e-5  # quantisation 7.6e-6 + float32 inputs
             assert np.abs(c - cr).max() < 1e-5 and n == nr
