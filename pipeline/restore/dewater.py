@@ -31,6 +31,10 @@ from pipeline.restore.records import MediumMaps
 from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
 
 SPACES = ("srgb", "linear")
+# λ² never above this: the photo keeps a share A²/(A² + 1) of every pixel (half where the water takes nothing),
+# whatever the measurement says. Texture finer than a pixel looks like noise to it (white, no lag-1
+# correlation): on bench/restore.py's frame, whose texture has a white component, it measured λ² = 8.5e7.
+MAX_PRIOR_WEIGHT = 1.0
 
 
 def _check(max_gain: float, space: str) -> None:
@@ -93,10 +97,10 @@ def prior_weights(residual_sq: np.ndarray, residual_lag: np.ndarray, a_sq: np.nd
     σ_d² = E[e_x e_x+1] / E[A²]; the least-squares weight is λ² = σ_n² / σ_d² (floored at (0.5/max_gain)²).
 
     Args (each [3], means over the surface pixels of the sampled rows): residual_sq E[e²], residual_lag
-    E[e_x·e_x+1], a_sq E[A²]. Returns lam2 [3]."""
+    E[e_x·e_x+1], a_sq E[A²]. Returns lam2 [3], at most :data:`MAX_PRIOR_WEIGHT`."""
     noise = np.maximum(residual_sq - residual_lag, 1e-12)
     detail = np.maximum(residual_lag, 1e-12) / np.maximum(a_sq, 1e-12)
-    return _lam2(noise / detail, max_gain)
+    return _lam2(np.minimum(noise / detail, MAX_PRIOR_WEIGHT), max_gain)
 
 
 def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,

@@ -78,9 +78,10 @@ class SynthFrame:
         I = np.where(surface[..., None], I, B_INF)
         return I, J, surface
 
-    def render(self, supersample: int = 4) -> RenderedView:
+    def render(self, supersample: int = 4, prior: bool = False) -> RenderedView:
         """The render the restorer gets: depth and alpha averaged over ``supersample``² sub-pixels of each render
-        pixel (a rasterizer's alpha-normalised depth at an edge is such a blend)."""
+        pixel (a rasterizer's alpha-normalised depth at an edge is such a blend); with ``prior``, the model's J too
+        (the clean image averaged the same way: a model with the right colours and the render's resolution)."""
         cam, s = self.render_camera, supersample
         off = (np.arange(s) + 0.5) / s
         xs = ((np.arange(cam.width)[:, None] + off[None]).ravel() - cam.cx) / cam.fx
@@ -90,4 +91,9 @@ class SynthFrame:
         a = surface.reshape(cam.height, s, cam.width, s).mean((1, 3))
         zs = z.reshape(cam.height, s, cam.width, s).sum((1, 3)) / np.maximum(surface.reshape(
             cam.height, s, cam.width, s).sum((1, 3)), 1)
-        return RenderedView(cam, zs.astype(np.float32), a.astype(np.float32), self.medium)
+        J = None
+        if prior:
+            rows = np.repeat(np.arange(cam.height), s)
+            Jss = self.clean_at(np.broadcast_to(xs[None, :], z.shape), np.broadcast_to(ys[:, None], z.shape), rows)
+            J = Jss.reshape(cam.height, s, cam.width, s, 3).mean((1, 3)).astype(np.float32)
+        return RenderedView(cam, zs.astype(np.float32), a.astype(np.float32), self.medium, J)
