@@ -235,14 +235,15 @@ def original_pictures(job: Path, report: dict) -> list[tuple[str, list[tuple[str
 
 def _crop_corner(photo: np.ndarray, conf: np.ndarray | None, size: int) -> tuple[int, int]:
     """Top-left corner of the size x size window with the most image detail (gradient energy) among restored
-    pixels, on a coarse grid of candidate windows; the centre when the photo is smaller than the window."""
+    pixels (confidence > 0: reconstructed surface), on a coarse grid of candidate windows; the centre when the
+    photo is smaller than the window."""
     H, W = photo.shape[:2]
     if H <= size or W <= size:
         return 0, 0
     g = photo.mean(axis=2)
     detail = np.abs(np.diff(g, axis=0))[:, :-1] + np.abs(np.diff(g, axis=1))[:-1, :]
     if conf is not None:
-        detail = detail * (conf[:-1, :-1] > 0.5)
+        detail = detail * (conf[:-1, :-1] > 0)
     ii = np.pad(detail.astype(np.float64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))  # integral image
     ys = np.arange(0, H - size, max(size // 2, 1))
     xs = np.arange(0, W - size, max(size // 2, 1))

@@ -72,8 +72,11 @@ def _restored_photos(r: dict, pics: Pictures) -> str:
     surface = [v["surface"] for v in views if v.get("surface") is not None]
     capped = [v["capped"] for v in views if v.get("capped") is not None]
     html += (f"<p>{rs['restored']} photos restored at their own resolution ({escape(', '.join(sorted(size)))}) "
-             f"and lens geometry into <code>restored/</code>, each as J = (I − B) / A with the water the model "
-             f"learned and the model's depth of every pixel, the gain 1/A capped at {fmt(rs['max_gain'], 1)}. "
+             f"and lens geometry into <code>restored/</code>: each pixel is the photo's own (I − B) / A, with the "
+             f"water the model learned at that pixel's range from the reconstruction, where the water lets "
+             f"enough light through, and leans on the model's reconstruction of that spot where it does not; no "
+             f"channel is amplified more than {fmt(rs['max_gain'], 1)} times (the confidence map is the photo's "
+             f"share). "
              + (f"Restored surface: {fmt(100 * min(surface), 0)}–{fmt(100 * max(surface), 0)} % of each photo "
                 f"(the rest, open water or seabed the model does not hold, is left as photographed and has "
                 f"confidence 0). " if surface else "")
