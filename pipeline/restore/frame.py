@@ -28,9 +28,10 @@ from pipeline.restore.guided import (
     halo_rows,
 )
 from pipeline.restore.lens import DEFAULT_TOL, LensGrid
-from pipeline.restore.records import LensCamera, RenderedView
+from pipeline.restore.records import RenderedView
 from pipeline.restore.sample import sample_maps
 from pipeline.scene.colour import srgb_to_linear
+from pipeline.scene.records import LensCamera
 
 logger = logging.getLogger(__name__)
 
@@ -86,6 +87,7 @@ class FrameRestorer:
             [np.broadcast_to(m.k_A, (*z.shape, 3)), np.broadcast_to(m.k_B, (*z.shape, 3))], -1), np.float32)
         self.jmap = None if view.J is None else np.ascontiguousarray(
             fill_invalid(np.asarray(view.J, np.float64), ok), np.float32)  # [h, w, 3], no holes to bleed in
+        self.lam2: np.ndarray | None = None  # the prior's weight per channel (calibrate); None: its floor
         logger.debug("restore %dx%d: lens grid step %d (%.4f px), filter r=%d s=%d halo=%d", lens.width,
                      lens.height, self.grid.step, self.grid.error, self.radius, self.s, self.halo)
 
@@ -95,8 +97,6 @@ class FrameRestorer:
         for y0 in range(0, H, self.band_rows):
             y1 = min(H, y0 + self.band_rows)
             yield max(0, y0 - self.halo), y0, y1, min(H, y1 + self.halo)
-
-    lam2: np.ndarray | None = None  # the prior's weight per channel (calibrate); None: the floor (0.5/max_gain)²
 
     def calibration_bands(self, n: int = CALIBRATION_BANDS) -> list[tuple[int, int, int, int]]:
         """``n`` of :meth:`bands`, evenly spread over the photo: where :meth:`calibrate` measures."""
@@ -112,11 +112,16 @@ class FrameRestorer:
         if self.jmap is None:
             return None
         sums, n_sq, n_lag = np.zeros((3, 3)), 0, 0
+        m = self.view.medium
         for e0, y0, y1, e1 in self.calibration_bands():
-            x, _, r, surface, k_A, k_B, prior = self._inputs(rows_of(e0, e1), e0, y0, y1)
-            m = self.view.medium
-            A = np.exp(-np.clip(np.asarray(k_A, np.float64) * r[..., None], 0, 80))
-            B = m.B_inf * -np.expm1(-np.clip(np.asarray(k_B, np.float64) * r[..., None], 0, 80))
+            rows = rows_of(e0, e1)
+            scale, r, surface, k_A, k_B, prior = self._geometry(rows, e0, y0, y1)
+            x = rows[y0 - e0:y1 - e0].astype(np.float64) * scale
+            if self.opt.space == "linear":
+                x = srgb_to_linear(np.clip(x, 0, 1))
+            r = r.astype(np.float64)[..., None]
+            A = np.exp(-np.clip(np.asarray(k_A, np.float64) * r, 0, 80))
+            B = m.B_inf * -np.expm1(-np.clip(np.asarray(k_B, np.float64) * r, 0, 80))
             e = x - (prior * A + B)
             both = surface[:, :-1] & surface[:, 1:]
             sums[0] += (e[surface] ** 2).sum(0)
@@ -128,38 +133,10 @@ class FrameRestorer:
         self.lam2 = prior_weights(sums[0] / n_sq, sums[1] / n_lag, sums[2] / n_sq, self.opt.max_gain)
         return self.lam2
 
-    def _inputs(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
-        """What the physics needs for rows [y0, y1): (the photo's rows in [0, 1] in the physics' space, float64
-        [n, W, 3]; the scale of the stored values; range r [n, W]; surface [n, W]; k_A; k_B; prior or None)."""
-        from pipeline.restore._kernels import luminance
-
-        e1 = e0 + rows.shape[0]
-        scale = 1.0 / np.iinfo(rows.dtype).max if np.issubdtype(rows.dtype, np.integer) else 1.0
-        xn, yn = self.grid.rays(e0, e1)
-        vals, inside = sample_maps(self.maps, xn, yn, self.view.camera)
-        z = vals[..., 0]
-        if self.radius > 0:
-            z = fast_guided_filter(luminance(np.ascontiguousarray(rows), scale), z, self.radius, self.opt.eps,
-                                   self.s)
-        c = slice(y0 - e0, y1 - e0)
-        xc, yc, z = xn[c], yn[c], z[c]
-        surface = inside[c] & (vals[c, :, 1] >= 0.5) & (z > 0)
-        r = (z * np.sqrt(1.0 + xc * xc + yc * yc)).astype(np.float64)
-        m = self.view.medium
-        k_A, k_B = m.k_A, m.k_B
-        if self.kmaps is not None:
-            k, _ = sample_maps(self.kmaps, xc, yc, self.view.camera)
-            k_A, k_B = k[..., :3], k[..., 3:]
-        prior = None if self.jmap is None else sample_maps(self.jmap, xc, yc, self.view.camera)[0]
-        x = rows[c].astype(np.float64) * scale
-        if self.opt.space == "linear":
-            x = srgb_to_linear(np.clip(x, 0, 1))
-        return x, scale, r, surface, k_A, k_B, prior
-
-    def band(self, rows: np.ndarray, e0: int, y0: int, y1: int, out_max: int = 255
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-        """Restore rows [y0, y1) given the photo's rows [e0, e0 + len(rows)) (uint8/uint16/float [m, W, 3]).
-        Returns (J [n, W, 3] uint8/uint16, confidence [n, W] float32, surface [n, W] bool, clipped count)."""
+    def _geometry(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
+        """What the physics needs of rows [y0, y1) besides the photo (``rows``: its rows [e0, e0 + len(rows))):
+        (the scale of the stored values, range r [n, W] float32, surface [n, W] bool, k_A, k_B, the prior
+        [n, W, 3] or None)."""
         from pipeline.restore._kernels import luminance
 
         e1 = e0 + rows.shape[0]
@@ -180,8 +157,16 @@ class FrameRestorer:
             k, _ = sample_maps(self.kmaps, xc, yc, self.view.camera)
             k_A, k_B = k[..., :3], k[..., 3:]
         prior = None if self.jmap is None else sample_maps(self.jmap, xc, yc, self.view.camera)[0]
-        J, conf, clipped = dewater(rows[c], r, surface, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
-                                   space=self.opt.space, out_max=out_max, scale=scale, prior=prior, lam2=self.lam2)
+        return scale, r, surface, k_A, k_B, prior
+
+    def band(self, rows: np.ndarray, e0: int, y0: int, y1: int, out_max: int = 255
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Restore rows [y0, y1) given the photo's rows [e0, e0 + len(rows)) (uint8/uint16/float [m, W, 3]).
+        Returns (J [n, W, 3] uint8/uint16, confidence [n, W] float32, surface [n, W] bool, clipped count)."""
+        scale, r, surface, k_A, k_B, prior = self._geometry(rows, e0, y0, y1)
+        J, conf, clipped = dewater(rows[y0 - e0:y1 - e0], r, surface, k_A, k_B, self.view.medium.B_inf,
+                                   max_gain=self.opt.max_gain, space=self.opt.space, out_max=out_max, scale=scale,
+                                   prior=prior, lam2=self.lam2)
         return J, conf, surface, clipped
 
 
@@ -209,10 +194,11 @@ def restore_array(photo: np.ndarray, lens: LensCamera, view: RenderedView,
 
 def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
                  options: RestoreOptions = RestoreOptions(), *, tiff16: bool = False,
-                 confidence_bits: int = 8) -> FrameResult:
+                 confidence_bits: int = 8, confidence_dir: Path | None = None) -> FrameResult:
     """Restore the image file ``src`` band by band into ``out_dir``: the restored image (same name and format,
     metadata kept; :func:`~pipeline.restore.files.restored_path`), ``<stem>_confidence.png`` (8 or 16 bit, 0..max
-    ↔ confidence 0..1) and ``<stem>_surface.png`` (8 bit, 255 = surface). Returns counts, time and paths."""
+    ↔ confidence 0..1) and ``<stem>_surface.png`` (8 bit, 255 = surface); with ``confidence_dir``, those two
+    there as ``<stem>.png`` and ``<stem>_surface.png`` (a job's layout). Returns counts, time and paths."""
     t = time.perf_counter()
     src, out_dir = Path(src), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -230,8 +216,14 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
     j_path = restored_path(src, out_dir, tiff16)
     sixteen = j_path.suffix == ".tif"
     c_max = 65535 if confidence_bits == 16 else 255
-    paths = {"J": j_path, "confidence": out_dir / f"{src.stem}_confidence.png",
-             "surface": out_dir / f"{src.stem}_surface.png"}
+    if confidence_dir is None:
+        conf_path = out_dir / f"{src.stem}_confidence.png"
+    else:
+        confidence_dir = Path(confidence_dir)
+        confidence_dir.mkdir(parents=True, exist_ok=True)
+        conf_path = confidence_dir / f"{src.stem}.png"
+    paths = {"J": j_path, "confidence": conf_path,
+             "surface": (confidence_dir or out_dir) / f"{src.stem}_surface.png"}
     writers = {
         "J": BandWriter(j_path, output_spec(reader.spec, W, H, 3, oiio.UINT16 if sixteen else oiio.UINT8, j_path)),
         "confidence": BandWriter(paths["confidence"], output_spec(

@@ -14,8 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.restore.records import LensCamera
-from pipeline.scene.records import Camera
+from pipeline.scene.records import Camera, LensCamera
 
 DEFAULT_EPS = 1e-4  # guide luminance variance units (luminance in [0, 1]); measured: bench/restore.py --filter
 

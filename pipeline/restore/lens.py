@@ -14,8 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.restore._kernels import interp_grid_rows
-from pipeline.restore.records import LensCamera
-from pipeline.scene.records import Camera
+from pipeline.scene.records import Camera, LensCamera
 
 MAX_STEP = 16
 DEFAULT_TOL = 0.005  # photo pixels

@@ -15,25 +15,6 @@ import numpy as np
 from pipeline.scene.records import Camera
 
 
-@dataclass(frozen=True)
-class LensCamera:
-    """A COLMAP camera model at the photo's own resolution (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``,
-    ``PINHOLE``, ``SIMPLE_PINHOLE`` ...); ``params`` in COLMAP's order for that model."""
-
-    model: str
-    width: int
-    height: int
-    params: tuple[float, ...]
-
-    def colmap(self):
-        """The same camera as a ``pycolmap.Camera`` (whose ``cam_from_img`` undistorts pixel-centre coordinates
-        [N, 2] into normalised rays [N, 2])."""
-        import pycolmap
-
-        return pycolmap.Camera(model=self.model, width=self.width, height=self.height,
-                               params=np.asarray(self.params, dtype=np.float64))
-
-
 @dataclass
 class MediumMaps:
     """The water of one view as effective coefficients, one path for both medium modes:

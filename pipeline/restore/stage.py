@@ -22,8 +22,10 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.job.options import JobCancelled
     from pipeline.restore.views import NOTHING_TO_RESTORE, lens_cameras, rendered_view, restore_photo
     from pipeline.scene.images import list_images
+    from pipeline.synth.ground_truth import find_ground_truth
     from pipeline.train.checkpoint import load_checkpoint
     from pipeline.train.model import model_from_state
+    from pipeline.train.render import displayed, render_outputs
 
     log = logging.getLogger(__name__)
     layout = JobLayout(job)
@@ -40,16 +42,20 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     views = training_views(job, state)
     lenses = lens_cameras(layout.scene)
     photos = {p.name for p in list_images(layout.images)}
-    layout.restored.mkdir(parents=True, exist_ok=True)
-    layout.confidence.mkdir(parents=True, exist_ok=True)
+    gt = find_ground_truth(opts.source, opts.ground_truth)
+    renders = {}  # with ground truth: each view's J as displayed, scored against the truth below
     per_view, t_all = [], time.perf_counter()
     for k, view in enumerate(views):
         if ctx.should_cancel():
             raise JobCancelled(f"cancelled during restore after {k} of {len(views)} photos")
         t0 = time.perf_counter()
         src = layout.images / view.name
-        stats = restore_photo(src, layout.restored, layout.confidence, lenses[view.name], rendered_view(model, view),
-                              max_gain=opts.max_gain, fmt=opts.restore_format, space=model.colour_space)
+        out = render_outputs(model.gaussians, view, model.medium, model.sh_degree, "auto", model.background)
+        if gt is not None:
+            renders[view.name] = displayed(out, model.colour_space).J
+        stats = restore_photo(src, layout.restored, layout.confidence, lenses[view.name],
+                              rendered_view(model, view, out=out), max_gain=opts.max_gain, fmt=opts.restore_format,
+                              space=model.colour_space)
         per_view.append({"name": view.name, **stats, "seconds": round(time.perf_counter() - t0, 3)})
         ctx.on_progress("restore", (k + 1) / len(views), f"restored {k + 1}/{len(views)} photos")
     registered = {v.name for v in views}
@@ -57,17 +63,10 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
            "format": opts.restore_format, "seconds": round(time.perf_counter() - t_all, 3), "views": per_view,
            "not_restored": [{"name": n, "reason": "SfM did not register it (no pose)"}
                             for n in sorted(photos - registered)]}
-    gt = _ground_truth(job, opts)
     if gt is not None:
         from pipeline.restore.truth import score_restored
 
-        res["truth"] = score_restored(job, gt, model, views, lenses, {v["name"]: v["file"] for v in per_view})
+        res["truth"] = score_restored(job, gt, views, lenses, {v["name"]: v["file"] for v in per_view}, renders)
     atomic_write_json(layout.restore_result, res)
     log.info("restored %d photos in %.1f s", len(per_view), res["seconds"])
     return res
-
-
-def _ground_truth(job: Path, opts: JobOptions) -> Path | None:
-    from pipeline.synth.ground_truth import find_ground_truth
-
-    return find_ground_truth(opts.source, opts.ground_truth)

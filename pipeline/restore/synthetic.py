@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.restore.lens import exact_rays
-from pipeline.restore.records import LensCamera, MediumMaps, RenderedView
-from pipeline.scene.records import Camera
+from pipeline.restore.records import MediumMaps, RenderedView
+from pipeline.scene.records import Camera, LensCamera
 
 BETA_D = np.array([0.35, 0.12, 0.08])
 BETA_B = np.array([0.30, 0.15, 0.10])

@@ -17,33 +17,17 @@ import numpy as np
 
 from pipeline.evaluate.metrics import pooled_psnr
 from pipeline.job.layout import JobLayout
-from pipeline.restore.lens import LensGrid, render_position
-from pipeline.restore.records import LensCamera
-from pipeline.scene.records import Camera, View
-from pipeline.train.model import TrainedModel
+from pipeline.restore.lens import LensGrid
+from pipeline.restore.sample import sample_maps
+from pipeline.scene.records import Camera, LensCamera, View
 
 
 def warp_to_photo(image: np.ndarray, camera: Camera, lens: LensCamera) -> np.ndarray:
     """``image`` [h, w, C] rendered in the PINHOLE ``camera`` carried into the photo's geometry: each photo pixel
-    samples it bilinearly where its undistorted ray lands (edge pixels clamped).  # [H, W, C]"""
+    samples it bilinearly where its undistorted ray lands (edge pixels clamped; the restorer's own
+    :func:`~pipeline.restore.sample.sample_maps`).  # [H, W, C] float32"""
     xn, yn = LensGrid(lens).rays(0, lens.height)
-    u, v = render_position(xn.astype(np.float64), yn.astype(np.float64), camera)
-    return bilinear(image, u - 0.5, v - 0.5)
-
-
-def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Sample ``image`` [h, w, C] at index coordinates (x, y) [H, W] (pixel centres at integers), clamped at the
-    border.  # [H, W, C] float32"""
-    h, w = image.shape[:2]
-    x = np.clip(x, 0, w - 1)
-    y = np.clip(y, 0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    tx, ty = (x - x0)[..., None], (y - y0)[..., None]
-    top = image[y0, x0] * (1 - tx) + image[y0, x1] * tx
-    bottom = image[y1, x0] * (1 - tx) + image[y1, x1] * tx
-    return (top * (1 - ty) + bottom * ty).astype(np.float32)
+    return sample_maps(image, xn, yn, camera)[0]
 
 
 MAX_OFFSET_PX = 8  # edge_offset searches shifts up to this many pixels (a misplaced photo is not "aligned")
@@ -80,14 +64,14 @@ def edge_offset(image: np.ndarray, reference: np.ndarray, max_shift: int = MAX_O
     return float(np.hypot(dx, dy))
 
 
-def score_restored(job: Path, gt_root: Path, model: TrainedModel, views: Sequence[View],
-                   lenses: dict[str, LensCamera], files: dict[str, str], backend: str = "auto") -> dict[str, Any]:
+def score_restored(job: Path, gt_root: Path, views: Sequence[View], lenses: dict[str, LensCamera],
+                   files: dict[str, str], renders: dict[str, np.ndarray]) -> dict[str, Any]:
     """Scores of the restored photos (``files``: view name -> file name in ``restored/``) against the truth of
-    ``gt_root``, per photo and pooled over the held-out and the training photos."""
+    ``gt_root``, per photo and pooled over the held-out and the training photos. ``renders``: view name -> the
+    model's J as displayed ([h, w, 3] in the view's camera; what the restore stage rendered)."""
     from pipeline.scene.images import read_image
     from pipeline.scene.split import split_views
     from pipeline.synth.ground_truth import FAR_DEPTH_M, load_ground_truth
-    from pipeline.train.render import displayed, render_outputs
 
     layout = JobLayout(job)
     gt = load_ground_truth(gt_root)
@@ -104,9 +88,7 @@ def score_restored(job: Path, gt_root: Path, model: TrainedModel, views: Sequenc
         photo = read_image(layout.images / v.name)
         conf_path = layout.confidence / f"{Path(v.name).stem}.png"
         confidence = read_image(conf_path)[..., 0] if conf_path.is_file() else None
-        J = displayed(render_outputs(model.gaussians, v, model.medium, model.sh_degree, backend, model.background),
-                      model.colour_space).J
-        render = warp_to_photo(J, v.camera, lenses[v.name])
+        render = warp_to_photo(renders[v.name], v.camera, lenses[v.name])
         row = {"name": v.name, "held_out": v.name in test_names,
                "restored_psnr": pooled_psnr([(restored, truth)], [mask]),
                "render_psnr": pooled_psnr([(render, truth)], [mask]),

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.restore.records import LensCamera, MediumMaps, RenderedView
-from pipeline.scene.records import View, ray_length_factor
+from pipeline.restore.records import MediumMaps, RenderedView
+from pipeline.scene.records import LensCamera, View, ray_length_factor
 from pipeline.train.model import TrainedModel
-from pipeline.train.render import render_outputs
+from pipeline.train.render import ViewOutputs, render_outputs
 
 # What a 3dgs job's report and restore.json say: that mode models no water.
 NOTHING_TO_RESTORE = "mode 3dgs models no water: nothing was removed, so there are no restored photos"
@@ -28,28 +28,29 @@ class LensModelError(FileNotFoundError):
 def lens_cameras(scene_dir: Path) -> dict[str, LensCamera]:
     """Image name -> its lens camera, from the SfM output ``scene_dir`` (``distorted/sparse/0``: the camera
     model bundle adjustment refined, at the photos' own resolution)."""
-    from pipeline.scene.colmap import has_model, read_reconstruction
+    from pipeline.scene.colmap import has_model
+    from pipeline.scene.colmap import lens_cameras as read_lenses
 
     sparse = scene_dir / "distorted" / "sparse" / "0"
     if not has_model(sparse):
         raise LensModelError(f"{sparse} holds no COLMAP model: the photos' lens is unknown, so they cannot be "
                              f"restored in their own geometry (re-run the sfm stage)")
-    rec = read_reconstruction(sparse)
-    cams = {cid: LensCamera(c.model.name, int(c.width), int(c.height), tuple(float(p) for p in c.params))
-            for cid, c in rec.cameras.items()}
-    return {img.name: cams[img.camera_id] for img in rec.images.values()}
+    return read_lenses(sparse)
 
 
-def rendered_view(model: TrainedModel, view: View, backend: str = "auto") -> RenderedView:
-    """The model's depth, alpha and water for ``view`` (training camera). The homogeneous medium is three
-    per-channel constants (exact at any resolution); a network medium's per-pixel A and B become effective
-    coefficients (:func:`pipeline.restore.medium.coefficients_from_maps`)."""
+def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: ViewOutputs | None = None
+                  ) -> RenderedView:
+    """The model's depth, alpha and water for ``view`` (training camera), from ``out`` when the caller rendered
+    it already. The homogeneous medium is three per-channel constants (exact at any resolution); a network
+    medium's per-pixel A and B become effective coefficients
+    (:func:`pipeline.restore.medium.coefficients_from_maps`)."""
     from pipeline.restore.medium import coefficients_from_maps
 
     medium = model.medium
     if medium is None:
         raise ValueError(NOTHING_TO_RESTORE)
-    out = render_outputs(model.gaussians, view, medium, model.sh_degree, backend, model.background)
+    if out is None:
+        out = render_outputs(model.gaussians, view, medium, model.sh_degree, backend, model.background)
     binf = medium.B_inf.detach().double().numpy()
     if medium.mode == "homogeneous":
         with torch.no_grad():
@@ -74,10 +75,7 @@ def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: Len
     from pipeline.restore.frame import RestoreOptions, restore_file
 
     res = restore_file(src, lens, view, restored_dir, RestoreOptions(max_gain=max_gain, space=space),
-                       tiff16=fmt == "tiff16")
-    confidence_dir.mkdir(parents=True, exist_ok=True)
-    res.paths["confidence"].replace(confidence_dir / f"{src.stem}.png")
-    res.paths["surface"].replace(confidence_dir / f"{src.stem}_surface.png")
+                       tiff16=fmt == "tiff16", confidence_dir=confidence_dir)
     n = lens.width * lens.height
     return {"file": res.paths["J"].name, "width": lens.width, "height": lens.height,
             "surface": round(res.surface_pixels / n, 5), "clipped": round(res.clipped / n, 5),

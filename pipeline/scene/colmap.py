@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.scene.records import Camera, Scene, Sightings, View
+from pipeline.scene.records import Camera, LensCamera, Scene, Sightings, View
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +83,15 @@ def read_reconstruction(sparse_dir: str | os.PathLike[str]):  # -> pycolmap.Reco
             return pycolmap.Reconstruction(str(d))
     except (ValueError, RuntimeError) as e:
         raise ColmapModelError(f"cannot parse the COLMAP model in {d}: {e}") from e
+
+
+def lens_cameras(sparse_dir: str | os.PathLike[str]) -> dict[str, LensCamera]:
+    """Image name -> its camera as the model in ``sparse_dir`` holds it, distortion included (any camera model,
+    binary or text)."""
+    rec = read_reconstruction(sparse_dir)
+    cams = {cid: LensCamera(c.model.name, int(c.width), int(c.height), tuple(float(p) for p in c.params))
+            for cid, c in rec.cameras.items()}
+    return {img.name: cams[img.camera_id] for img in rec.images.values()}
 
 
 def camera_models(sparse_dir: str | os.PathLike[str]) -> list[str]:
@@ -269,6 +278,7 @@ __all__ = [
     "UnsupportedCameraError",
     "camera_models",
     "has_model",
+    "lens_cameras",
     "quiet_pycolmap",
     "qvec_to_rotmat",
     "read_colmap",

@@ -39,6 +39,30 @@ class Camera:
         return Camera(w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
 
 
+@dataclass(frozen=True)
+class LensCamera:
+    """A camera as COLMAP models it, lens distortion included, at the photo's own resolution: the model name
+    (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``, ``PINHOLE``, ``SIMPLE_PINHOLE`` ...), size and ``params`` in
+    COLMAP's order for that model. SfM's model of a job's photos, a generated scene's true camera."""
+
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+    def colmap(self):
+        """The same camera as a ``pycolmap.Camera`` (whose ``cam_from_img`` undistorts pixel-centre coordinates
+        [N, 2] into normalised rays [N, 2])."""
+        import pycolmap
+
+        return pycolmap.Camera(model=self.model, width=self.width, height=self.height,
+                               params=np.asarray(self.params, dtype=np.float64))
+
+    def cameras_txt_line(self, camera_id: int = 1) -> str:
+        """The camera as a line of COLMAP's cameras.txt."""
+        return f"{camera_id} {self.model} {self.width} {self.height} {' '.join(repr(float(p)) for p in self.params)}"
+
+
 @dataclass
 class View:
     """One posed image."""

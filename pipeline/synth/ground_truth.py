@@ -28,8 +28,7 @@ import numpy as np
 
 from pipeline.scene.images import read_image, resize_area_to
 from pipeline.scene.loader import load_scene, load_view_image
-from pipeline.scene.records import Scene, View
-from pipeline.synth.lens import OriginalCamera
+from pipeline.scene.records import LensCamera, Scene, View
 from pipeline.synth.procedural import PINHOLE_DIR
 from pipeline.synth.water import TRUE_WATER_FILE
 
@@ -57,10 +56,12 @@ class GroundTruth:
         """The scene folder whose images/, clean/, depth/ are in the true (possibly distorted) geometry."""
         return self.scene_root or self.root
 
-    def original_camera(self, name: str) -> OriginalCamera:
+    def original_camera(self, name: str) -> LensCamera:
         """The true camera of view ``name`` as recorded (sparse_gt/): RADIAL for a distorted scene, else
         PINHOLE; params in COLMAP order."""
-        return _read_text_cameras(self.original_root / "sparse_gt")[name]
+        from pipeline.scene.colmap import lens_cameras
+
+        return lens_cameras(self.original_root / "sparse_gt")[name]
 
     def clean_original(self, name: str) -> np.ndarray:
         """The true clean radiance of view ``name`` at full resolution in the recorded geometry.  # [H, W, 3]"""
@@ -152,21 +153,6 @@ def load_ground_truth(root: str | Path) -> GroundTruth:
     if pinhole.is_dir():
         return GroundTruth(pinhole, load_scene(pinhole), water, scene_root=root)
     return GroundTruth(root, load_scene(root), water, scene_root=root)
-
-
-def _read_text_cameras(sparse: Path) -> dict[str, OriginalCamera]:
-    """View name -> its camera, from a generator-written COLMAP text model (cameras.txt, images.txt)."""
-    cams: dict[int, OriginalCamera] = {}
-    for line in (sparse / "cameras.txt").read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            cid, model, w, h, *params = line.split()
-            cams[int(cid)] = OriginalCamera(model, int(w), int(h), tuple(float(p) for p in params))
-    lines = [ln for ln in (sparse / "images.txt").read_text().splitlines() if not ln.startswith("#")]
-    out = {}
-    for line in lines[0::2]:  # an image line, then its (possibly empty) points line
-        f = line.split()
-        out[f[9]] = cams[int(f[8])]
-    return out
 
 
 __all__ = ["GroundTruth", "GroundTruthError", "find_ground_truth", "is_generated_scene", "load_ground_truth"]

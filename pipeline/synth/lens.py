@@ -16,43 +16,37 @@ undistorted scenes are computed exactly as before.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from pipeline.scene.records import Camera, ray_length_factor
+from pipeline.scene.records import Camera, LensCamera, ray_length_factor
 
 F64 = torch.float64
 NEWTON_STEPS = 30
 
 
-@dataclass(frozen=True)
-class OriginalCamera:
-    """A camera as COLMAP writes it: model name, size and params in COLMAP's order."""
-
-    model: str  # "PINHOLE" (fx, fy, cx, cy) or "RADIAL" (f, cx, cy, k1, k2)
-    width: int
-    height: int
-    params: tuple[float, ...]
-
-    def cameras_txt_line(self, camera_id: int = 1) -> str:
-        return f"{camera_id} {self.model} {self.width} {self.height} {' '.join(repr(float(p)) for p in self.params)}"
+def distortion_pair(value) -> tuple[float, float]:
+    """A config's ``distortion`` (any pair-like, e.g. a JSON list) as the (k1, k2) floats of COLMAP's RADIAL."""
+    k = tuple(float(x) for x in value)
+    if len(k) != 2:
+        raise ValueError(f"distortion is (k1, k2), got {value!r}")
+    return k  # type: ignore[return-value]
 
 
 def is_distorted(distortion: tuple[float, float]) -> bool:
     return any(float(k) != 0.0 for k in distortion)
 
 
-def original_camera(cam: Camera, distortion: tuple[float, float]) -> OriginalCamera:
+def original_camera(cam: Camera, distortion: tuple[float, float]) -> LensCamera:
     """The true camera of a generated scene: PINHOLE without distortion, else RADIAL (needs fx == fy)."""
     if not is_distorted(distortion):
-        return OriginalCamera("PINHOLE", cam.width, cam.height, (cam.fx, cam.fy, cam.cx, cam.cy))
+        return LensCamera("PINHOLE", cam.width, cam.height, (cam.fx, cam.fy, cam.cx, cam.cy))
     if cam.fx != cam.fy:
         raise ValueError(f"RADIAL needs fx == fy, got {cam.fx} and {cam.fy}")
     k1, k2 = (float(k) for k in distortion)
     check_invertible(cam, (k1, k2))
-    return OriginalCamera("RADIAL", cam.width, cam.height, (cam.fx, cam.cx, cam.cy, k1, k2))
+    return LensCamera("RADIAL", cam.width, cam.height, (cam.fx, cam.cx, cam.cy, k1, k2))
 
 
 def _radial_gain(r2, k1: float, k2: float):
@@ -138,5 +132,5 @@ def row_bands(height: int, rays_per_row: int, max_rays: int) -> list[tuple[int, 
     return [(r, min(height, r + step)) for r in range(0, height, step)]
 
 
-__all__ = ["OriginalCamera", "distort_normalized", "is_distorted", "original_camera", "pixel_directions",
+__all__ = ["distort_normalized", "distortion_pair", "is_distorted", "original_camera", "pixel_directions",
            "pixel_ray_factor", "project_pixels", "row_bands", "undistort_normalized"]

@@ -61,7 +61,7 @@ import torch
 
 from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
 from pipeline.scene.records import Camera, View
-from pipeline.synth.lens import is_distorted, original_camera, pixel_directions, row_bands
+from pipeline.synth.lens import distortion_pair, is_distorted, original_camera, pixel_directions, row_bands
 from pipeline.synth.photo_path import photo_survey_path
 from pipeline.synth.photo_texture import Mosaic, PhotoBox, PhotoSet, load_photos, make_mosaic, mosaic_albedo
 from pipeline.synth.photo_world import Terrain, make_terrain, march, normals
@@ -267,7 +267,7 @@ def iter_photo_scene(cfg: PhotoSynthConfig, world: PhotoWorld | None = None, com
         raise ValueError(f"unknown water preset {cfg.preset!r}; choose from {sorted(PHOTO_WATER_PRESETS)}")
     if cfg.supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {cfg.supersample}")
-    distortion = _distortion(cfg.distortion)
+    distortion = distortion_pair(cfg.distortion)
     cam = make_camera(cfg)
     original_camera(cam, distortion)  # fails early on a lens that folds over
     world = world or build_world(cfg)
@@ -299,19 +299,12 @@ def iter_photo_scene(cfg: PhotoSynthConfig, world: PhotoWorld | None = None, com
     return world, views()
 
 
-def _distortion(value) -> tuple[float, float]:
-    k = tuple(float(x) for x in value)
-    if len(k) != 2:
-        raise ValueError(f"distortion is (k1, k2), got {value!r}")
-    return k  # type: ignore[return-value]
-
-
 def generate_photo_scene(cfg: PhotoSynthConfig, out_dir: str | Path) -> Path:
     """Render a photo-family scene and write it to ``out_dir`` (layout in the module docstring)."""
     t0 = time.perf_counter()
     world, rendered = iter_photo_scene(cfg)
     out = Path(out_dir)
-    distortion = _distortion(cfg.distortion)
+    distortion = distortion_pair(cfg.distortion)
     views = write_scene_files(out, rendered, cfg.views, distortion, cfg.n_points,
                               np.random.default_rng([cfg.seed, 505]))
     water = PHOTO_WATER_PRESETS[cfg.preset]

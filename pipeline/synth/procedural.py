@@ -42,9 +42,9 @@ import torch
 from pipeline.config import SynthConfig, to_dict
 from pipeline.scene.colmap import rotmat_to_qvec
 from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
-from pipeline.scene.records import Camera, View
+from pipeline.scene.records import Camera, LensCamera, View
 from pipeline.synth.lens import (
-    OriginalCamera,
+    distortion_pair,
     is_distorted,
     original_camera,
     pixel_directions,
@@ -158,7 +158,7 @@ def iter_scene(cfg: SynthConfig, companions: bool = True):
     """(world, iterator of (view, pinhole companion or None)), rendered one view at a time (bounded memory)."""
     if cfg.preset not in WATER_PRESETS:
         raise ValueError(f"unknown water preset {cfg.preset!r}; choose from {sorted(WATER_PRESETS)}")
-    distortion = _distortion(cfg.distortion)
+    distortion = distortion_pair(cfg.distortion)
     rng = np.random.default_rng(cfg.seed)
     world = build_world(cfg)
     cam = make_camera(cfg)
@@ -184,18 +184,11 @@ def iter_scene(cfg: SynthConfig, companions: bool = True):
     return world, views()
 
 
-def _distortion(value) -> tuple[float, float]:
-    k = tuple(float(x) for x in value)
-    if len(k) != 2:
-        raise ValueError(f"distortion is (k1, k2), got {value!r}")
-    return k  # type: ignore[return-value]
-
-
 def generate_scene(cfg: SynthConfig, out_dir: str | Path) -> Path:
     """Render a scene and write it to ``out_dir`` (layout in the module docstring). Returns the folder."""
     out = Path(out_dir)
     world, rendered = iter_scene(cfg)
-    distortion = _distortion(cfg.distortion)
+    distortion = distortion_pair(cfg.distortion)
     views = write_scene_files(out, rendered, cfg.views, distortion, cfg.n_points, np.random.default_rng(cfg.seed + 1))
     water = WATER_PRESETS[cfg.preset]
     meta = {
@@ -332,7 +325,7 @@ def observe_points(points: np.ndarray, views: list[SynthView], distortion: tuple
 
 
 def write_colmap_text(out: Path, views: list[View], points: np.ndarray, colors: np.ndarray, tracks,
-                      camera: OriginalCamera | None = None) -> None:
+                      camera: LensCamera | None = None) -> None:
     """Classic 3-file COLMAP text model (one shared camera: ``camera``, default the views' PINHOLE camera;
     points with observations)."""
     out.mkdir(parents=True, exist_ok=True)

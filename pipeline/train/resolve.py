@@ -39,6 +39,11 @@ def medium_with_water(medium: MediumConfig, decision: Mapping[str, Any]) -> Medi
                    init_optical_depth=tuple(decision.get("init_optical_depth", medium.init_optical_depth)))
 
 
+def training_downscale(opts: JobOptions, width: int) -> int:
+    """The integer downscale that brings images ``width`` wide to at most ``opts.max_width``."""
+    return max(1, math.ceil(width / opts.max_width))
+
+
 def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] | None,
                          selection: Mapping[str, Any] | None) -> TrainConfig:
     """The frozen TrainConfig a job trains with.
@@ -70,9 +75,9 @@ def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] 
     medium = cfg.medium
     if mode != "3dgs" and water is not None:
         medium = medium_with_water(medium, water)
-    return replace(cfg, mode=mode, seed=opts.seed, downscale=max(1, math.ceil(width / opts.max_width)),
+    return replace(cfg, mode=mode, seed=opts.seed, downscale=training_downscale(opts, width),
                    colour_space=opts.colour_space,
                    eval_every=curve_every(cfg.iterations), sh_degree=sh_degree, densify=densify, medium=medium)
 
 
-__all__ = ["PROBE_BASE_MODE", "medium_with_water", "resolve_train_config"]
+__all__ = ["PROBE_BASE_MODE", "medium_with_water", "resolve_train_config", "training_downscale"]

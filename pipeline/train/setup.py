@@ -56,7 +56,7 @@ def load_training_images(views: Sequence[View], downscale: int, colour_space: st
         raise ValueError(f"unknown colour space {colour_space!r}")
     out = []
     for view in views:
-        cam = scaled_view(view, downscale).camera if downscale > 1 else view.camera
+        cam = scaled_view(view, downscale).camera
         img = load_view_image(view)
         if colour_space == "linear":
             img = srgb_to_linear(img).astype(np.float32)
@@ -78,12 +78,11 @@ def prepare_images(
     out_views, targets = [], []
     for view, img in zip(views, images, strict=True):
         shape = tuple(np.shape(img))
-        small = scaled_view(view, downscale) if downscale > 1 else view
+        small = scaled_view(view, downscale)
         # the full size, or a copy shrunk by an integer up to this downscale (the train stage loads its images at
         # the job's training size; the mode probe trains these at its own, smaller, size)
-        sizes = {(scaled_view(view, k).camera.height, scaled_view(view, k).camera.width, 3)
-                 for k in range(1, downscale + 1)}
-        if shape not in sizes:
+        cams = [scaled_view(view, k).camera for k in range(1, downscale + 1)]
+        if shape not in {(c.height, c.width, 3) for c in cams}:
             full = (view.camera.height, view.camera.width, 3)
             raise ValueError(f"image of {view.name!r} is {shape}, camera says {full} (or a copy shrunk by an "
                              f"integer up to {downscale})")

@@ -20,7 +20,7 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.scene.loader import load_scene
     from pipeline.scene.split import split_views
     from pipeline.train.guard import train_checked
-    from pipeline.train.resolve import resolve_train_config
+    from pipeline.train.resolve import resolve_train_config, training_downscale
     from pipeline.train.setup import load_training_images
     from pipeline.train.trainer import TrainingCancelled
 
@@ -30,15 +30,14 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     train_scene = scene.subset(train_views)
     # the classify stage's decision; in a folder from before its rename, the legacy file (JobLayout.legacy_classify)
     water = json.loads(found.read_text()) if (found := layout.classify_written) is not None else None
-    # the images at the training size, read one at a time (the downscale follows the width and max_width only)
-    down = resolve_train_config(opts, scene.views[0].camera.width, water, None).downscale
+    # the images at the training size, read one at a time
+    down = training_downscale(opts, scene.views[0].camera.width)
     images = load_training_images(train_scene.views, down, opts.colour_space)
     selection = None
     if opts.mode == "auto":  # the probe starts from the config resolved before its choice, at its views' width
         base = resolve_train_config(opts, train_scene.views[0].camera.width, water, None)
         selection = select_mode(job, base, train_scene, images, water, ctx)
     cfg = resolve_train_config(opts, scene.views[0].camera.width, water, selection)
-    assert cfg.downscale == down, (cfg.downscale, down)
     atomic_write_json(layout.train_config, to_dict(cfg))
     start = PROBE_SHARE if selection is not None else 0.0
     from pipeline.train.hooks import curve_subset

@@ -3,8 +3,7 @@
 import numpy as np
 
 from pipeline.restore.lens import LensGrid, exact_rays, render_position
-from pipeline.restore.records import LensCamera
-from pipeline.scene.records import Camera
+from pipeline.scene.records import Camera, LensCamera
 
 
 def test_grid_matches_exact_map_to_a_hundredth_of_a_pixel():

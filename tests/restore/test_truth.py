@@ -4,9 +4,8 @@ carried into a photo's geometry lands where the lens puts it."""
 import numpy as np
 import pytest
 
-from pipeline.restore.records import LensCamera
 from pipeline.restore.truth import edge_offset, warp_to_photo
-from pipeline.scene.records import Camera
+from pipeline.scene.records import Camera, LensCamera
 
 
 def _smooth_noise(h: int, w: int, seed: int = 0) -> np.ndarray:
