@@ -9,7 +9,7 @@ import hashlib
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 from service.client.http import Artifact, ClientError, ServiceClient
 
@@ -61,10 +61,10 @@ def select(artifacts: Sequence[Artifact], patterns: Sequence[str]) -> list[Artif
 
 def local_path(out: Path, artifact_path: str) -> Path:
     """Where an artifact lands under ``out``; a path that would leave ``out`` is refused."""
-    rel = PurePosixPath(artifact_path)
-    if rel.is_absolute() or not rel.parts or any(p in ("..", "", ".") for p in rel.parts):
+    parts = artifact_path.split("/")
+    if any(p in ("..", "", ".") or "\\" in p for p in parts):  # absolute ("/x" has an empty first part) too
         raise ClientError(0, "bad_response", f"the server listed an artifact path that is not safe: {artifact_path!r}")
-    return out.joinpath(*rel.parts)
+    return out.joinpath(*parts)
 
 
 def sha256_file(path: Path) -> str:

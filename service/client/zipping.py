@@ -68,12 +68,11 @@ def zip_stream(entries: list[FolderEntry], on_read: Callable[[int], None] | None
     """The zip of ``entries`` in pieces of about a MiB, produced as they are consumed. ``on_read(n)`` is told
     every n source bytes read (upload progress over the sum of the entries' sizes)."""
     sink = _Sink()
-    with zipfile.ZipFile(sink, "w", allowZip64=True) as zf:  # type: ignore[arg-type]
+    with zipfile.ZipFile(sink, "w", allowZip64=True, compresslevel=1) as zf:  # type: ignore[arg-type]
         for e in entries:
             info = zipfile.ZipInfo.from_file(e.path, e.name)
             stored = e.path.suffix.lower() in STORED_SUFFIXES
             info.compress_type = zipfile.ZIP_STORED if stored else zipfile.ZIP_DEFLATED
-            info.compress_level = None if stored else 1
             info.file_size = e.size  # decides zip64 up front: the header cannot be patched in a stream
             with open(e.path, "rb") as src, zf.open(info, "w") as dst:
                 while chunk := src.read(CHUNK):
