@@ -400,6 +400,10 @@ def cmd_submit(args: argparse.Namespace) -> int:
                "seed": args.seed, "metric_scale": args.metric_scale, "colour_space": args.colour_space,
                "restore_format": args.format, "max_gain": args.max_gain}
     with client:
+        try:
+            client.check()
+        except ClientError as e:
+            return _client_error(args, e)
         bar = byte_bar(total, f"upload {filename}")
         try:
             job = client.submit(body(bar.update), filename=filename, content_type=ctype, length=length, options=options,

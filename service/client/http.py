@@ -115,6 +115,11 @@ class ServiceClient:
             headers["Idempotency-Key"] = idempotency_key
         return self.json("POST", "/v1/jobs", params=params, content=body, headers=headers)
 
+    def check(self) -> None:
+        """One cheap authenticated request: a wrong key or an unreachable server is reported before an upload
+        starts (a server that refuses a streamed body mid-way may reset the connection instead of answering)."""
+        self.json("GET", "/v1/jobs", params={"limit": 1})
+
     def job(self, job_id: str) -> dict:
         return self.json("GET", f"/v1/jobs/{job_id}")
 
