@@ -1,10 +1,15 @@
 """The client's pieces that need no server: the folder zipped while it streams, artifact selection, safe local
-paths, and the command line's refusals before any request (no key, nothing listening, a bad path)."""
+paths, the command line's refusals before any request (no key, nothing listening, a bad path), and waiting out a
+server that briefly does not answer (a stdlib HTTP server playing a script: the live stack cannot be made to
+answer 503 on cue)."""
 
 from __future__ import annotations
 
 import io
+import json
+import threading
 import zipfile
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
@@ -12,7 +17,8 @@ from svc_helpers import free_port
 
 from pipeline.cli import KEY_ENV, SERVER_ENV, main
 from service.client.download import local_path, select
-from service.client.http import Artifact, ClientError
+from service.client.http import Artifact, ClientError, ServiceClient
+from service.client.watch import wait_job
 from service.client.zipping import archive_content_type, folder_entries, zip_stream
 from service.settings import Settings
 
@@ -87,3 +93,50 @@ def test_no_key_and_nothing_listening_are_clear_messages(tmp_path, capsys, monke
     (tmp_path / "photo.jpg").write_bytes(b"x")
     assert main(["submit", str(tmp_path / "photo.jpg"), "--server", url]) == 1
     assert "is not a folder or a .zip/.tar" in capsys.readouterr().err
+
+
+class _Scripted(BaseHTTPRequestHandler):
+    """Answers GET /v1/jobs/<id> with the next (status, body) of the server's script."""
+
+    def do_GET(self) -> None:  # noqa: N802 (the stdlib's name)
+        self.server.paths.append(self.path)
+        status, body = self.server.script.pop(0)
+        data = json.dumps(body).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def log_message(self, *args) -> None:
+        pass
+
+
+@pytest.fixture()
+def scripted():
+    server = ThreadingHTTPServer(("127.0.0.1", 0), _Scripted)
+    server.script, server.paths = [], []
+    t = threading.Thread(target=server.serve_forever, daemon=True)
+    t.start()
+    yield server
+    server.shutdown()
+    server.server_close()
+
+
+def test_wait_rides_out_a_server_that_is_briefly_unavailable(scripted) -> None:
+    busy = {"error": {"code": "unavailable", "message": "restarting"}}
+    job = {"id": "j1", "state": "running", "stage": "train", "progress": 40.0, "message": ""}
+    scripted.script = [(200, job), (503, busy), (503, busy), (200, {**job, "state": "done", "progress": 100.0})]
+    seen, slept = [], []
+    with ServiceClient(f"http://127.0.0.1:{scripted.server_port}", "k" * 20) as c:
+        final = wait_job(c, "j1", interval_s=0.01, on_update=seen.append, sleep=slept.append)
+    assert final["state"] == "done" and [s["state"] for s in seen] == ["running", "done"]
+    assert slept == [0.01, 0.02, 0.04]  # the poll interval, then doubling while the server did not answer
+    assert scripted.paths == ["/v1/jobs/j1"] * 4
+
+
+def test_wait_gives_up_on_a_real_refusal_at_once(scripted) -> None:
+    scripted.script = [(404, {"error": {"code": "job_not_found", "message": "no job 'j1'"}})]
+    with ServiceClient(f"http://127.0.0.1:{scripted.server_port}", "k" * 20) as c, pytest.raises(ClientError) as e:
+        wait_job(c, "j1", interval_s=0.01, sleep=lambda s: None)
+    assert (e.value.status, e.value.code) == (404, "job_not_found") and len(scripted.paths) == 1
