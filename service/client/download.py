@@ -47,14 +47,20 @@ class DownloadReport:
 
 
 def select(artifacts: Sequence[Artifact], patterns: Sequence[str]) -> list[Artifact]:
-    """The artifacts whose path matches any glob of ``patterns`` (``*`` crosses '/'), or a folder prefix
-    (``restored`` or ``output/restored/``); all of them when no pattern is given."""
+    """The artifacts any of ``patterns`` picks; all of them when none is given. A pattern is a glob over the
+    path (``*`` crosses '/': ``*.ply``, ``output/restored/*``); one without '/' also matches the file's own name
+    (``report.json``) or any folder on its path (``restored`` picks ``output/restored/`` and
+    ``output/renders/restored/``); a trailing '/' (``output/restored/``) picks that folder."""
     if not patterns:
         return list(artifacts)
 
     def hit(path: str, pat: str) -> bool:
-        prefix = pat.rstrip("/") + "/"
-        return fnmatch.fnmatchcase(path, pat) or path.startswith(prefix) or f"/{prefix}" in f"/{path}"
+        parts = path.split("/")
+        if pat.endswith("/"):
+            return path.startswith(pat) or f"/{pat}" in f"/{path}"
+        if fnmatch.fnmatchcase(path, pat):
+            return True
+        return "/" not in pat and any(fnmatch.fnmatchcase(p, pat) for p in parts)
 
     return [a for a in artifacts if any(hit(a.path, p) for p in patterns)]
 

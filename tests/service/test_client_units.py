@@ -58,8 +58,11 @@ def test_select_by_glob_and_folder() -> None:
             ("ingest.json", "output/reconstruction.ply", "output/restored/a.png", "output/renders/restored/a.png")]
     assert [a.path for a in select(arts, [])] == [a.path for a in arts]
     assert [a.path for a in select(arts, ["*.ply"])] == ["output/reconstruction.ply"]
-    assert [a.path for a in select(arts, ["output/restored"])] == ["output/restored/a.png"]
-    assert [a.path for a in select(arts, ["restored/"])] == ["output/restored/a.png", "output/renders/restored/a.png"]
+    assert [a.path for a in select(arts, ["output/restored/"])] == ["output/restored/a.png"]
+    assert [a.path for a in select(arts, ["output/restored/*"])] == ["output/restored/a.png"]
+    assert [a.path for a in select(arts, ["restored"])] == ["output/restored/a.png", "output/renders/restored/a.png"]
+    assert [a.path for a in select(arts, ["reconstruction.ply", "ingest.*"])] == ["ingest.json",
+                                                                                   "output/reconstruction.ply"]
     assert select(arts, ["nothing*"]) == []
 
 
