@@ -313,10 +313,14 @@ DEFAULT_SERVER = "http://127.0.0.1:8000"  # where `dualphys serve` listens by de
 JOB_EXIT = {"done": 0, "failed": 3, "cancelled": 4}
 
 
+def _server(args: argparse.Namespace) -> str:
+    return args.server or os.environ.get(SERVER_ENV) or DEFAULT_SERVER
+
+
 def _connect(args: argparse.Namespace):
     """A ServiceClient from --server/--key or the environment; None (after the message) when it cannot be made."""
     try:
-        from service.client.http import ServiceClient
+        from service.client.remote import ServiceClient
     except ImportError as e:  # httpx missing: the client extra is not installed
         _fail(args.command, f"the client needs httpx ({e}); pip install 'dualphys[client]'")
         return None
@@ -324,17 +328,17 @@ def _connect(args: argparse.Namespace):
     if not key:
         _fail(args.command, f"no API key: pass --key or set {KEY_ENV}")
         return None
-    return ServiceClient(args.server or os.environ.get(SERVER_ENV) or DEFAULT_SERVER, key, timeout=args.timeout)
+    return ServiceClient(_server(args), key, timeout=args.timeout)
 
 
 def _client_error(args: argparse.Namespace, e, job_id: str | None = None) -> int:
     """A ClientError as one line on stderr, exit 1: what went wrong and what to check (never the key)."""
-    server = args.server or os.environ.get(SERVER_ENV) or DEFAULT_SERVER
+    server = _server(args)
     if e.status == 401:
         msg = f"the server refused the API key ({e.code}: {e.message}); check --key or {KEY_ENV}"
     elif e.code == "connection_failed":
         msg = f"cannot connect to {server}: is the service running there? (--server or {SERVER_ENV})"
-    elif e.status == 404 and job_id:
+    elif e.code == "job_not_found" and job_id:
         msg = f"no job {job_id} on {server} for this key ({e.code})"
     else:
         msg = f"{e.message} ({e.code}{f', HTTP {e.status}' if e.status else ''})"
@@ -368,8 +372,8 @@ def _wait(args: argparse.Namespace, client, job_id: str) -> int:
 
 def cmd_submit(args: argparse.Namespace) -> int:
     """A folder (zipped while it uploads) or an archive (sent as is) becomes a job on the server."""
-    from service.client.http import ClientError
     from service.client.progress import byte_bar
+    from service.client.remote import ClientError
     from service.client.zipping import archive_content_type, file_stream, folder_entries, zip_stream
 
     src: Path = args.path
@@ -424,7 +428,7 @@ def cmd_submit(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from service.client.http import ClientError
+    from service.client.remote import ClientError
 
     client = _connect(args)
     if client is None:
@@ -441,7 +445,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_jobs(args: argparse.Namespace) -> int:
-    from service.client.http import ClientError
+    from service.client.remote import ClientError
 
     client = _connect(args)
     if client is None:
@@ -466,8 +470,8 @@ def cmd_jobs(args: argparse.Namespace) -> int:
 def cmd_download(args: argparse.Namespace) -> int:
     """The job's artifacts into --out, resumable and verified; or --bundle: everything as one zip."""
     from service.client.download import download_bundle, download_job
-    from service.client.http import ClientError
     from service.client.progress import byte_bar
+    from service.client.remote import ClientError
 
     out: Path = args.out or Path(args.job)
     client = _connect(args)
@@ -508,7 +512,7 @@ def cmd_download(args: argparse.Namespace) -> int:
 
 
 def cmd_cancel(args: argparse.Namespace) -> int:
-    from service.client.http import ClientError
+    from service.client.remote import ClientError
 
     client = _connect(args)
     if client is None:

@@ -1,7 +1,7 @@
 """A client of the dualphys service for another machine: the functions behind ``dualphys submit / status / jobs /
 download / cancel`` (pipeline/cli.py is the thin command line on top).
 
-- :mod:`service.client.http`: :class:`ServiceClient`, typed calls over httpx with the Bearer key; every
+- :mod:`service.client.remote`: :class:`ServiceClient`, typed calls over httpx with the Bearer key; every
   non-2xx answer and every transport failure becomes a :class:`ClientError` with the service's stable code.
 - :mod:`service.client.zipping`: a folder as a zip written while it uploads (no temporary file).
 - :mod:`service.client.download`: resumable, checksum-verified downloads of a job's artifacts.

@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from service.client.http import Artifact, ClientError, ServiceClient
+from service.client.remote import Artifact, ClientError, ServiceClient
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ import logging
 import time
 from collections.abc import Callable
 
-from service.client.http import TERMINAL_STATES, ClientError, ServiceClient
+from service.client.remote import TERMINAL_STATES, ClientError, ServiceClient
 
 log = logging.getLogger(__name__)
 

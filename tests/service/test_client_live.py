@@ -16,7 +16,7 @@ from svc_helpers import KEYS, METRICS, small_jpegs, zip_bytes
 
 from pipeline.cli import KEY_ENV, SERVER_ENV, main
 from service.client.download import NET_CHUNK, download_artifact
-from service.client.http import ServiceClient
+from service.client.remote import ServiceClient
 
 pytestmark = pytest.mark.slow
 

@@ -17,7 +17,7 @@ from svc_helpers import free_port
 
 from pipeline.cli import KEY_ENV, SERVER_ENV, main
 from service.client.download import local_path, select
-from service.client.http import Artifact, ClientError, ServiceClient
+from service.client.remote import Artifact, ClientError, ServiceClient
 from service.client.watch import wait_job
 from service.client.zipping import archive_content_type, folder_entries, zip_stream
 from service.settings import Settings
