@@ -9,6 +9,8 @@ import hashlib
 import io
 import json
 import time
+import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -57,17 +59,17 @@ def done_job(live, remote, scene_images) -> dict:
 
 
 @pytest.fixture(scope="module")
-def api(live) -> ServiceClient:
+def alice(live) -> Iterator[ServiceClient]:
     with ServiceClient(live.url, KEYS["alice"]) as c:
         yield c
 
 
 @pytest.mark.timeout(600)  # the scene is generated on first use (the session fixture): minutes on a busy machine
-def test_submit_a_folder_and_wait_until_done(done_job, api) -> None:
+def test_submit_a_folder_and_wait_until_done(done_job, alice) -> None:
     assert done_job["rc"] == 0, done_job["err"]
     st = done_job["status"]
     assert st["state"] == "done" and st["progress"] == 100.0 and st["error"] is None
-    job = api.job(st["id"])
+    job = alice.job(st["id"])
     assert job["source"]["filename"] == f"{done_job['folder'].name}.zip"
     assert job["ingest"]["images"] == len(list(done_job["folder"].glob("*.png"))) == 12
     assert job["options"]["iterations"] == 60 and job["options"]["preset"] == "fast"
@@ -94,9 +96,9 @@ def test_status_and_jobs(done_job, remote, live, monkeypatch) -> None:
 
 
 @pytest.mark.timeout(120)
-def test_download_everything_verified_then_nothing_again(done_job, remote, api, tmp_path) -> None:
+def test_download_everything_verified_then_nothing_again(done_job, remote, alice, tmp_path) -> None:
     jid = done_job["status"]["id"]
-    arts = api.artifacts(jid)
+    arts = alice.artifacts(jid)
     assert any(a.path == "output/reconstruction.ply" for a in arts) and any("restored/" in a.path for a in arts)
     t0 = time.monotonic()
     rc, out, err = run("download", jid, "--out", str(tmp_path), *remote)
@@ -119,17 +121,15 @@ def test_download_everything_verified_then_nothing_again(done_job, remote, api, 
     rc, out, _ = run("download", jid, "--out", str(tmp_path / "sel"), "--only", "no-such-*", *remote)
     assert rc == 1
     rc, out, _ = run("download", jid, "--bundle", "--out", str(tmp_path / "b"), *remote)
-    import zipfile
-
     with zipfile.ZipFile(tmp_path / "b" / f"{jid}.zip") as z:
         assert sorted(z.namelist()) == sorted(a.path for a in arts)
 
 
 @pytest.mark.timeout(120)
-def test_an_interrupted_download_resumes_with_a_range(done_job, remote, api, tmp_path) -> None:
+def test_an_interrupted_download_resumes_with_a_range(done_job, remote, alice, tmp_path) -> None:
     jid = done_job["status"]["id"]
-    ply = next(a for a in api.artifacts(jid) if a.path == "output/reconstruction.ply")
-    assert ply.size > 2 * NET_CHUNK, ply.size  # room to stop after the first piece
+    big = max(alice.artifacts(jid), key=lambda a: a.size)  # the largest (the tiny job's PLY is ~50 kB)
+    assert big.size > 2 * NET_CHUNK, big.size  # room to stop after the first piece
 
     class Stop(Exception):
         pass
@@ -139,23 +139,24 @@ def test_an_interrupted_download_resumes_with_a_range(done_job, remote, api, tmp
 
     # 1. a transfer broken off midway leaves <path>.part with what arrived
     with pytest.raises(Stop):
-        download_artifact(api, ply, tmp_path, on_bytes=stop_after_first_piece)
-    part = tmp_path / "output" / "reconstruction.ply.part"
+        download_artifact(alice, big, tmp_path, on_bytes=stop_after_first_piece)
+    part = tmp_path / f"{big.path}.part"
     kept = part.stat().st_size
-    assert kept == NET_CHUNK and not (tmp_path / ply.path).exists()
+    assert kept == NET_CHUNK and not (tmp_path / big.path).exists()
     # 2. the command run again asks for the rest (Range: bytes=<kept>-) and gets only that (206)
-    rc, out, err = run("download", jid, "--out", str(tmp_path), "--only", ply.path, *remote)
+    rc, out, err = run("download", jid, "--out", str(tmp_path), "--only", big.path, *remote)
     assert rc == 0, err
     summary = last_json(out)
-    assert summary["resumed"] == [ply.path] and summary["fetched"] == ply.size - kept
-    assert sha256(tmp_path / ply.path) == ply.sha256 and not part.exists()
+    assert summary["resumed"] == [big.path] and summary["fetched"] == big.size - kept
+    assert sha256(tmp_path / big.path) == big.sha256 and not part.exists()
+    METRICS["client resumed download"] = f"{big.path}: {kept} bytes kept, {summary['fetched']} fetched of {big.size}"
     # 3. a .part that is not a prefix of the file (another version): the resume fails its checksum, the whole
     # file is fetched once more and verifies
-    (tmp_path / ply.path).unlink()
+    (tmp_path / big.path).unlink()
     part.write_bytes(b"\0" * 1000)
-    res = download_artifact(api, ply, tmp_path)
-    assert res.verified and res.fetched == (ply.size - 1000) + ply.size and res.resumed_from == 0
-    assert sha256(tmp_path / ply.path) == ply.sha256
+    res = download_artifact(alice, big, tmp_path)
+    assert res.verified and res.fetched == (big.size - 1000) + big.size and res.resumed_from == 0
+    assert sha256(tmp_path / big.path) == big.sha256
 
 
 @pytest.mark.timeout(120)
@@ -176,7 +177,7 @@ def test_wrong_key_unknown_job_and_another_owners_job(done_job, live) -> None:
 
 
 @pytest.mark.timeout(180)
-def test_cancel(done_job, remote, api, tmp_path) -> None:
+def test_cancel(done_job, remote, alice, tmp_path) -> None:
     """A finished job cannot be cancelled (409, exit 1); an archive sent as is, cancelled at once, ends
     cancelled (exit 4 with --wait). The worker is busy with nothing else, so the cancel is usually immediate;
     three tiny images make SfM fail fast if a stage starts first."""
@@ -187,7 +188,7 @@ def test_cancel(done_job, remote, api, tmp_path) -> None:
     rc, out, err = run("submit", str(archive), *remote)
     assert rc == 0, err
     jid = last_json(out)["id"]
-    assert api.job(jid)["source"]["filename"] == "three.zip"
+    assert alice.job(jid)["source"]["filename"] == "three.zip"
     rc, out, err = run("cancel", jid, "--wait", "--interval", "0.2", *remote)
     final = last_json(out)
     assert final["state"] in ("cancelled", "failed")  # failed only when SfM refused the set before the cancel
