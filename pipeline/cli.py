@@ -414,6 +414,10 @@ def cmd_submit(args: argparse.Namespace) -> int:
                                 idempotency_key=args.idempotency_key)
         except ClientError as e:
             bar.close()
+            if e.status == 0 and e.code != "connection_failed":  # the body went out; the server may have the job
+                print(f"dualphys submit: the server may still have created the job: see `dualphys jobs` before "
+                      f"sending again{'' if args.idempotency_key else ' (--idempotency-key makes a repeat safe)'}",
+                      file=sys.stderr)
             return _client_error(args, e)
         bar.close()
         print(f"job {job['id']} {job['state']} ({job['ingest']['images'] if job.get('ingest') else '?'} images)",

@@ -14,6 +14,9 @@ import httpx
 log = logging.getLogger(__name__)
 
 TERMINAL_STATES = frozenset({"done", "failed", "cancelled"})
+SUBMIT_ANSWER_S = 1800.0
+"""How long a submit waits for its answer once the body is sent: the API unpacks and decodes every image before it
+answers (docs/SERVICE.md, "Creating a job"), minutes for a large survey set."""
 
 
 class ClientError(Exception):
@@ -50,6 +53,7 @@ class ServiceClient:
 
     def __init__(self, server: str, key: str, timeout: float = 60.0, transport: httpx.BaseTransport | None = None):
         self.server = server.rstrip("/")
+        self.timeout = timeout
         self._http = httpx.Client(base_url=self.server, headers={"Authorization": f"Bearer {key}"},
                                   timeout=httpx.Timeout(timeout, connect=min(timeout, 10.0)), transport=transport)
 
@@ -113,7 +117,8 @@ class ServiceClient:
             headers["Content-Length"] = str(length)  # httpx then sends no Transfer-Encoding: chunked
         if idempotency_key:
             headers["Idempotency-Key"] = idempotency_key
-        return self.json("POST", "/v1/jobs", params=params, content=body, headers=headers)
+        timeout = httpx.Timeout(self.timeout, connect=min(self.timeout, 10.0), read=max(self.timeout, SUBMIT_ANSWER_S))
+        return self.json("POST", "/v1/jobs", params=params, content=body, headers=headers, timeout=timeout)
 
     def check(self) -> None:
         """One cheap authenticated request: a wrong key or an unreachable server is reported before an upload
