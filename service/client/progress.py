@@ -14,7 +14,7 @@ class JobBar:
     def __init__(self, job_id: str, disable: bool | None = None) -> None:
         self.job_id = job_id
         self.bar = tqdm(total=100.0, unit="%", file=sys.stderr, dynamic_ncols=True, disable=disable,
-                        bar_format="{desc}: {percentage:5.1f}%|{bar}| [{elapsed}] {postfix}")
+                        bar_format="{desc}: {percentage:5.1f}%|{bar}| [{elapsed}{postfix}]")
         self.bar.set_description_str(job_id)
         self.last: tuple[str, str | None] | None = None
 
