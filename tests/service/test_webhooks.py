@@ -170,7 +170,7 @@ def hook_api(tmp_path, unit_prefix):
 
     data = tmp_path / "hook"  # beside the plain ``api`` fixture's folder when a test uses both
     (data / "surveys-root").mkdir(parents=True)
-    settings = make_settings(data, unit_prefix, **HOOK_SETTINGS)
+    settings = make_settings(data, unit_prefix, survey_settle_s=0, **HOOK_SETTINGS)
     with TestClient(create_app(settings)) as client:
         client.settings = settings
         yield client
@@ -228,6 +228,30 @@ def test_cancelled_queued_job_announces_once_and_delivers_signed(hook_api, recei
     d = hook_api.get(f"/v1/jobs/{job['id']}", headers=h).json()["webhooks"][0]
     assert (d["status"], d["attempts"], d["last_status_code"], d["last_error"]) == ("delivered", 1, 204, None)
     assert d["finished_at"] >= d["created_at"]
+
+
+def test_survey_callback_is_checked_and_given_to_its_jobs(hook_api) -> None:
+    from service.compose import compose
+    from service.surveys.scan import scan
+
+    root = hook_api.settings.survey_roots[0]
+    for i, data in enumerate(small_jpegs(6, seed=80)):
+        (root / "reef" / "dive-1").mkdir(parents=True, exist_ok=True)
+        (root / "reef" / "dive-1" / f"{i}.jpg").write_bytes(data)
+    body = {"path": str(root / "reef"), "interval_s": 60}
+    for owner, url, code in (("alice", "http://10.0.0.1/x", "callback_not_allowed"),
+                             ("bob", "http://127.0.0.1/x", "callback_no_secret")):
+        r = hook_api.post("/v1/surveys", json={**body, "callback_url": url}, headers=auth(owner))
+        assert r.status_code == 422 and r.json()["error"]["code"] == code, r.text
+    r = hook_api.post("/v1/surveys", json={**body, "callback_url": "http://127.0.0.1:9/survey"}, headers=auth("alice"))
+    assert r.status_code == 201 and r.json()["callback_url"] == "http://127.0.0.1:9/survey", r.text
+    rt = compose(hook_api.settings, None)
+    rt.jobs.dispatcher = RecordingDispatcher()
+    try:
+        [job_id] = scan(rt.surveys, rt.surveys.get(r.json()["id"]), rt.jobs, rt.scan_config)
+        assert rt.store.read(job_id).callback_url == "http://127.0.0.1:9/survey"
+    finally:
+        rt.close()
 
 
 # ---------------------------------------------------------------- planning in the worker, attempts, give-up

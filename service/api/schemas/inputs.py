@@ -23,3 +23,5 @@ class SurveyCreate(BaseModel):
     interval_s: float = Field(..., gt=0, description="seconds between scans")
     name: str | None = Field(None, max_length=200)
     options: SurveyOptions = Field(default_factory=SurveyOptions, description="job options for this survey's sets")
+    callback_url: str | None = Field(None, description="every job of this survey POSTs its run ends here, as a "
+                                                       "job's callback_url does")

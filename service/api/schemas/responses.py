@@ -160,6 +160,7 @@ class SurveyOut(BaseModel):
     path: str
     interval_s: float
     options: dict
+    callback_url: str | None = None
     origin: str = Field(..., description="api | config")
     created_at: float
     last_scan_at: float | None
