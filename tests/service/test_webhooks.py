@@ -318,6 +318,25 @@ def test_one_event_per_run_end_whatever_is_redelivered(hook_rt) -> None:
     assert body["error"]["code"] == "stage_failed" and body["error"]["stage"] == "train"
 
 
+def test_runs_ended_before_a_stage_starts_announce_too(hook_rt) -> None:
+    rt = hook_rt
+    stages = pipeline.job.runner.STAGES
+    # the worker died in the first stage as often as allowed: the next delivery fails the job (worker_lost)
+    lost = new_hook_job(rt, "http://127.0.0.1:9/lost")
+    m = rt.store.read(lost)
+    m.stage(stages[0]).status, m.stage(stages[0]).attempts = "running", rt.settings.max_stage_attempts
+    rt.store.write(m)
+    assert execute_stage(rt, lost, stages[0], m.run_id).status == "failed"
+    # a cancel flag set while the stage's message waited in the queue: cancelled before it starts
+    flagged = new_hook_job(rt, "http://127.0.0.1:9/flagged")
+    rt.coord.request_cancel(flagged)
+    assert execute_stage(rt, flagged, stages[0], rt.store.read(flagged).run_id).status == "cancelled"
+    events = {j: [(d.event, json.loads(d.body)["error"]) for d in rt.store.read(j).webhooks] for j in (lost, flagged)}
+    assert events[lost][0][0] == "job.failed" and events[lost][0][1]["code"] == "worker_lost"
+    assert events[flagged] == [("job.cancelled", None)]
+    assert [j for j, _ in rt.jobs.dispatcher.webhooks] == [lost, flagged]
+
+
 def test_failing_receiver_is_retried_with_backoff_then_given_up(hook_rt, receivers) -> None:
     rt = hook_rt
     rx = receiver(receivers, status=500)
