@@ -4,7 +4,7 @@ losing Redis loses queued messages and the cache, never a finished stage.
 
 Keys (all under ``<prefix>:``): ``job:<id>:run`` (runner lock), ``job:<id>:manifest`` (short mutex around a
 manifest read-modify-write), ``job:<id>:cancel``, ``job:<id>:progress`` (hash), ``idem:<owner>:<sha256>``,
-``survey:<id>:scan``.
+``survey:<id>:scan``, ``hook:<delivery id>`` (one webhook attempt at a time).
 """
 
 from __future__ import annotations
@@ -138,6 +138,21 @@ class Coordinator:
     def scan_lock(self, survey_id: str, ttl_s: float = 600.0) -> Iterator[bool]:
         """Yields False when another scanner holds this survey's lock (the caller skips the scan)."""
         lock = self.redis.lock(self.key("survey", survey_id, "scan"), timeout=ttl_s, blocking=False)
+        got = lock.acquire(blocking=False)
+        try:
+            yield got
+        finally:
+            if got:
+                try:
+                    lock.release()
+                except LockError:
+                    pass
+
+    @contextmanager
+    def webhook_claim(self, delivery_id: str, ttl_s: float) -> Iterator[bool]:
+        """Yields False when another task is sending this webhook delivery right now (a duplicated message):
+        one attempt at a time per delivery. The TTL outlives the HTTP timeout, so a crashed sender frees it."""
+        lock = self.redis.lock(self.key("hook", delivery_id), timeout=ttl_s, blocking=False)
         got = lock.acquire(blocking=False)
         try:
             yield got

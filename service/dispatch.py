@@ -15,7 +15,11 @@ log = logging.getLogger(__name__)
 RUN_STAGE_TASK = "dualphys.run_stage"
 SCAN_SURVEYS_TASK = "dualphys.scan_surveys"
 SCAN_SURVEY_TASK = "dualphys.scan_survey"
+DELIVER_WEBHOOK_TASK = "dualphys.deliver_webhook"
 CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE = "cpu", "gpu", "surveys"
+# Webhook deliveries share the light queue of the folder scans: every worker that scans also delivers (no new
+# -Q to forget in a deployment), and neither waits behind a stage on a worker that has a spare process for it.
+WEBHOOK_QUEUE = SURVEY_QUEUE
 
 
 class DispatchError(RuntimeError):
@@ -47,6 +51,13 @@ class Dispatcher:
             raise DispatchError(f"could not queue stage {stage} of job {job_id}: {e}") from e
         log.info("queued %s of job %s (run %s) on %s as %s", stage, job_id, run_id, self.queue_for(stage), res.id)
         return res.id
+
+    def send_webhook(self, job_id: str, delivery_id: str, countdown: float | None = None) -> str:
+        try:
+            return self.app.send_task(DELIVER_WEBHOOK_TASK, args=[job_id, delivery_id], queue=WEBHOOK_QUEUE,
+                                      countdown=countdown).id
+        except (KombuError, RedisError, OSError) as e:
+            raise DispatchError(f"could not queue webhook {delivery_id} of job {job_id}: {e}") from e
 
     def send_scan(self, survey_id: str) -> str:
         try:

@@ -33,6 +33,7 @@ from .redact import redact_paths
 from .settings import Settings
 from .store import JobNotFound, new_job_id
 from .uploads import UploadError, check_declared_length, receive_upload
+from .webhooks.callback import CallbackRefused, check_callback_url
 
 log = logging.getLogger(__name__)
 
@@ -93,9 +94,11 @@ class UploadIntake:
             job_dir.mkdir(parents=True)
             up = await receive_upload(req.body, req.content_type, req.query, JobLayout(job_dir).upload,
                                       settings.max_upload_bytes)
-            options = self._options({k: v for k, v in up.fields.items() if k != "filename"})
+            fields = {k: v for k, v in up.fields.items() if k != "filename"}
+            callback_url = self._callback(owner, fields.pop("callback_url", None))
+            options = self._options(fields)
             if first is not None:  # a repeat: the same request gets the first job, another request an error
-                if not _same_request(first, up.sha256, options.model_dump()):
+                if not _same_request(first, up.sha256, options.model_dump(), callback_url):
                     raise UploadError(422, "idempotency_key_reused",
                                       f"this Idempotency-Key was used for job {first.id} with a different archive "
                                       f"or other options; use a new key for a new job")
@@ -105,7 +108,8 @@ class UploadIntake:
                 result, seconds = await anyio.to_thread.run_sync(self._ingest, job_dir, opts)
             source = {"kind": "upload", "filename": up.filename, "bytes": up.bytes, "sha256": up.sha256}
             m = await anyio.to_thread.run_sync(lambda: jobs.create(job_id, owner, opts, source, ingest=result,
-                                                                   ingest_seconds=seconds))
+                                                                   ingest_seconds=seconds,
+                                                                   callback_url=callback_url))
             created = True
             if key is not None:
                 await anyio.to_thread.run_sync(self._confirm_key, owner, key, job_id)
@@ -136,6 +140,16 @@ class UploadIntake:
         if (why := options.over_limit(self.settings.max_iterations)) is not None:
             raise UploadError(422, "invalid_options", why)
         return options
+
+    def _callback(self, owner: str, url: str | None) -> str | None:
+        """The job's callback URL if this server may call it for ``owner`` (service.webhooks.callback), else 422."""
+        if url is None or url == "":
+            return None
+        s = self.settings
+        try:
+            return check_callback_url(url, s.webhook_allowed_hosts, s.webhook_secret(owner) is not None)
+        except CallbackRefused as e:
+            raise UploadError(422, e.code, str(e)) from None
 
     def _claim_key(self, owner: str, key: str, job_id: str) -> str | None:
         """None when ``key`` is new (claimed for ``job_id``), else what holds it: a job id, or ``pending:<id>``.
@@ -168,7 +182,7 @@ class UploadIntake:
         return result, round(time.time() - t0, 3)
 
 
-def _same_request(first: Manifest, sha256: str, options: dict) -> bool:
-    """A repeat of the request that made ``first``: the same archive bytes and the same options."""
+def _same_request(first: Manifest, sha256: str, options: dict, callback_url: str | None) -> bool:
+    """A repeat of the request that made ``first``: the same archive bytes, options and callback URL."""
     kept = {k: v for k, v in first.options.items() if k != "source"}
-    return first.source.get("sha256") == sha256 and kept == options
+    return first.source.get("sha256") == sha256 and kept == options and first.callback_url == callback_url

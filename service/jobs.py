@@ -13,8 +13,9 @@ from pathlib import Path
 
 from .coord import Coordinator
 from .dispatch import Dispatcher, DispatchError
-from .manifest import TERMINAL_STATES, JobError, Manifest, RunRecord, StageRecord
+from .manifest import TERMINAL_STATES, JobError, Manifest, RunRecord, StageRecord, WebhookDelivery
 from .store import JobNotFound, JobStore
+from .webhooks.events import plan_event
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +58,8 @@ class JobOps:
 
     # ---- create
     def create(self, job_id: str, owner: str, options: dict, source: dict, *, survey_id: str | None = None,
-               ingest: dict | None = None, ingest_seconds: float | None = None) -> Manifest:
+               ingest: dict | None = None, ingest_seconds: float | None = None,
+               callback_url: str | None = None) -> Manifest:
         """Write job.json and the manifest of a job whose folder exists, then queue its first unfinished stage."""
         from pipeline.job.markers import atomic_write_json
 
@@ -65,7 +67,7 @@ class JobOps:
         stages = pipeline_stages()
         run_id = new_run_id()
         m = Manifest(id=job_id, owner=owner, created_at=now, updated_at=now, run_id=run_id, options=options,
-                     source=source, survey_id=survey_id, ingest=ingest,
+                     source=source, survey_id=survey_id, ingest=ingest, callback_url=callback_url,
                      stages={s: StageRecord() for s in stages})
         if ingest is not None:  # the API validated the upload by running the ingest stage itself
             m.stages["ingest"] = StageRecord(status="done", started_at=now - (ingest_seconds or 0), finished_at=now,
@@ -102,12 +104,15 @@ class JobOps:
             self.dispatcher.send_stage(job_id, stage, run_id)
         except DispatchError as e:
             log.error("%s", e)
+            planned = None
             with self.coord.manifest_mutex(job_id):
                 m = self.store.read(job_id)
                 if m.run_id == run_id and m.state not in TERMINAL_STATES:
                     m.state = "failed"
                     m.error = JobError(stage=stage, code="broker_unavailable", message=str(e))
+                    planned = plan_event(m)
                     self.store.write(m)
+            self.announce(job_id, planned)  # most likely refused by the same broker: the delivery stays pending
             raise
         with self.coord.manifest_mutex(job_id):
             m = self.store.read(job_id)
@@ -115,6 +120,25 @@ class JobOps:
                 m.dispatched.append(stage)
                 self.store.write(m)
         return m
+
+    def announce(self, job_id: str, planned: WebhookDelivery | None) -> None:
+        """Queue the delivery of a run's end event that ``plan_event`` recorded (None: nothing to send). A broker
+        that refuses it leaves the delivery ``pending`` in the manifest, with the reason; the job is unaffected."""
+        if planned is None or self.dispatcher is None:
+            return
+        try:
+            self.dispatcher.send_webhook(job_id, planned.id)
+        except DispatchError as e:
+            log.error("%s", e)
+            try:
+                with self.coord.manifest_mutex(job_id):
+                    m = self.store.read(job_id)
+                    for d in m.webhooks:
+                        if d.id == planned.id and d.status == "pending":
+                            d.last_error = f"not queued: {e}"[:300]
+                    self.store.write(m)
+            except Exception as err:  # Redis is likely down too; the log has it
+                log.warning("could not record the unqueued webhook %s: %s", planned.id, err)
 
     # ---- read
     def get(self, job_id: str, owner: str) -> Manifest:
@@ -172,16 +196,19 @@ class JobOps:
                 raise JobConflict("job_finished", "the job has already finished")
             if m.state in ("failed", "cancelled"):
                 return m
+            planned = None
             if not self.coord.run_lock_held(job_id):
                 # no stage is running (queued, or between two stages): nothing to interrupt. A runner that
                 # takes the lock right after this check reads the manifest under the mutex and drops the job.
                 self._mark_cancelled(m, "cancelled" if m.state == "running" else "cancelled before it started")
+                planned = plan_event(m)
             else:
                 m.cancel_requested = True
                 self.coord.request_cancel(job_id)
                 m.message = "cancel requested"
             self.store.write(m)
         self.store.append_log(job_id, "INFO service: cancel requested")
+        self.announce(job_id, planned)
         return m
 
     @staticmethod

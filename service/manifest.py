@@ -58,6 +58,26 @@ class RunRecord(BaseModel):
     outcome: str | None = None  # done | failed | cancelled
 
 
+class WebhookDelivery(BaseModel):
+    """One event for the job's callback URL (service.webhooks): planned in the write that ends a run, then sent by
+    the ``dualphys.deliver_webhook`` task; every attempt updates it. ``body`` is the exact JSON every attempt
+    sends (the signature covers it), kept out of the status view."""
+
+    id: str  # the delivery id, also in the body and the X-Dualphys-Delivery header (receivers deduplicate on it)
+    event: str  # job.done | job.failed | job.cancelled
+    run_id: str
+    state: str
+    url: str
+    created_at: float
+    body: str
+    status: Literal["pending", "delivered", "given_up"] = "pending"
+    attempts: int = 0
+    last_status_code: int | None = None  # the receiver's HTTP status at the last attempt (None: no answer)
+    last_error: str | None = None  # why the last attempt failed (HTTP status or connection error)
+    last_attempt_at: float | None = None
+    finished_at: float | None = None  # delivered or given up
+
+
 class Manifest(BaseModel):
     schema_version: int = SCHEMA_VERSION
     id: str
@@ -79,6 +99,8 @@ class Manifest(BaseModel):
     error: JobError | None = None
     dispatched: list[str] = Field(default_factory=list)  # stages of the current run whose task was sent
     ingest: dict | None = None  # images, skipped (undecodable, listed), ignored (non-images)
+    callback_url: str | None = None  # where each run's end is announced (service.webhooks); None: nowhere
+    webhooks: list[WebhookDelivery] = Field(default_factory=list)  # one per run that ended, in order
 
     def stage(self, name: str) -> StageRecord:
         return self.stages.setdefault(name, StageRecord())

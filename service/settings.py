@@ -88,6 +88,21 @@ class Settings(BaseSettings):
     survey_gap_s: float = Field(300.0, gt=0)
     """Images directly in a survey folder split into sets where capture times are further apart than this."""
 
+    # ---- webhooks (service.webhooks)
+    webhook_allowed_hosts: list[str] = []
+    """Hosts a job's ``callback_url`` may name (exact names or IPs; ``.example.org`` allows its sub-domains).
+    Empty: webhooks are off and a callback_url is refused (422 ``callbacks_disabled``)."""
+    webhook_secrets: dict[str, SecretStr] = {}
+    """Owner -> the secret their events are signed with (HMAC-SHA256); an owner without one cannot set a
+    callback_url (422 ``callback_no_secret``)."""
+    webhook_max_attempts: int = Field(5, ge=1)
+    """Attempts per event; after the last failed one the delivery is given up (recorded on the job)."""
+    webhook_backoff_s: float = Field(10.0, gt=0)
+    """Wait before the second attempt; doubled for each attempt after it (capped at ``webhook_backoff_max_s``)."""
+    webhook_backoff_max_s: float = Field(600.0, gt=0)
+    webhook_timeout_s: float = Field(10.0, gt=0)
+    """Connect and read timeout of one attempt; a receiver slower than this counts as a failed attempt."""
+
     @field_validator("api_keys")
     @classmethod
     def _keys_long_enough(cls, v: dict[SecretStr, str]) -> dict[SecretStr, str]:
@@ -107,6 +122,10 @@ class Settings(BaseSettings):
     @property
     def surveys_dir(self) -> Path:
         return self.data_dir / "surveys"
+
+    def webhook_secret(self, owner: str) -> str | None:
+        secret = self.webhook_secrets.get(owner)
+        return secret.get_secret_value() if secret is not None else None
 
     def archive_limits(self) -> ArchiveLimits:
         return ArchiveLimits(max_entries=self.archive_max_entries, max_total_bytes=self.archive_max_total_bytes,

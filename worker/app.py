@@ -6,9 +6,9 @@ functions load it inside the prefork child that runs them: a child forked after 
 "Numbers behind code comments").
 
 Queues: ``cpu`` (every stage but train, and train unless ``DUALPHYS_TRAIN_QUEUE=gpu``), ``gpu`` (train on GPU
-workers), ``surveys`` (folder scans from beat). The message contract (broker, serialisation, exchange, queues)
-is ``service.broker``'s, shared with the API's producer; this module adds the consumer's side. Delivery:
-acks_late + prefetch 1 + reject on worker loss, so a task whose worker dies is delivered again; the broker's
+workers), ``surveys`` (folder scans from beat, webhook deliveries). The message contract (broker, serialisation,
+exchange, queues) is ``service.broker``'s, shared with the API's producer; this module adds the consumer's side.
+Delivery: acks_late + prefetch 1 + reject on worker loss, so a task whose worker dies is delivered again; the broker's
 visibility timeout redelivers a task that was never acknowledged, and the per-job lock plus stage markers make
 every redelivery harmless. The tasks hand this app to ``service.compose`` to queue the next stages.
 """

@@ -26,9 +26,10 @@ from pipeline.job.layout import JobLayout
 from service.compose import Components
 from service.coord import Coordinator, RunLock
 from service.jobs import pipeline_stages
-from service.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, overall_progress
+from service.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, WebhookDelivery, overall_progress
 from service.redact import redact_paths
 from service.store import JobNotFound, JobStore
+from service.webhooks.events import plan_event
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +81,8 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
     if stage not in stages:
         return Outcome("stale", detail=f"unknown stage {stage!r}")
 
+    ended: Outcome | None = None  # the job ended before the stage started (cancelled, or its worker died too often)
+    planned: WebhookDelivery | None = None
     with rt.coord.manifest_mutex(job_id):
         try:
             m = rt.store.read(job_id)
@@ -93,25 +96,27 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
             pending_next = nxt is not None and nxt not in m.dispatched
         else:
             if m.cancel_requested or rt.coord.cancel_requested(job_id):
-                _finish(m, "cancelled", None, "cancelled before " + stage)
-                rt.store.write(m)
-                return Outcome("cancelled")
-            if rec.status == "running":  # the previous attempt's worker died: keep that attempt in the record
+                planned = _finish(m, "cancelled", None, "cancelled before " + stage)
+                ended = Outcome("cancelled")
+            elif rec.status == "running":  # the previous attempt's worker died: keep that attempt in the record
                 rec.history.append(AttemptRecord(attempt=rec.attempts, started_at=rec.started_at,
                                                  ended_at=m.updated_at, outcome="worker_lost", last=m.message))
                 log.warning("job %s: the worker running %s died (attempt %d, last: %s)", job_id, stage,
                             rec.attempts, m.message or "-")
-            if rec.status == "running" and rec.attempts >= rt.settings.max_stage_attempts:
+            if ended is None and rec.status == "running" and rec.attempts >= rt.settings.max_stage_attempts:
                 msg = f"the worker died {rec.attempts} times while running {stage}"
-                _finish(m, "failed", JobError(stage=stage, code="worker_lost", message=msg), msg)
+                planned = _finish(m, "failed", JobError(stage=stage, code="worker_lost", message=msg), msg)
                 rec.status, rec.finished_at = "failed", time.time()
-                rt.store.write(m)
-                return Outcome("failed", detail=msg)
-            rec.status, rec.started_at, rec.finished_at, rec.seconds = "running", time.time(), None, None
-            rec.attempts += 1
-            m.state, m.current_stage, m.message = "running", stage, f"{stage} started"
+                ended = Outcome("failed", detail=msg)
+            if ended is None:
+                rec.status, rec.started_at, rec.finished_at, rec.seconds = "running", time.time(), None, None
+                rec.attempts += 1
+                m.state, m.current_stage, m.message = "running", stage, f"{stage} started"
             rt.store.write(m)
             attempt = rec.attempts
+    if ended is not None:
+        rt.jobs.announce(job_id, planned)  # outside the mutex: announce takes it when the broker refuses
+        return ended
     if rec.status == "done":
         if pending_next:
             rt.jobs.dispatch(job_id, run_id, nxt)
@@ -150,11 +155,14 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
     return out
 
 
-def _finish(m: Manifest, state: str, error: JobError | None, message: str) -> None:
+def _finish(m: Manifest, state: str, error: JobError | None, message: str) -> WebhookDelivery | None:
+    """End the job's run in ``m`` (written by the caller); returns the webhook delivery it planned, which the
+    caller queues with ``rt.jobs.announce`` once ``m`` is written."""
     m.state, m.error, m.message, m.cancel_requested = state, error, message, False
     run = m.current_run
     if run is not None and run.outcome is None:
         run.outcome, run.finished_at = state, time.time()
+    return plan_event(m)
 
 
 def _record_end(rt: Components, job_id: str, run_id: str, stage: str, status: str, error: JobError | None,
@@ -162,6 +170,7 @@ def _record_end(rt: Components, job_id: str, run_id: str, stage: str, status: st
     """Write the stage's end into the manifest; for ``done`` also the job's end or hand-over to the next stage."""
     stages = pipeline_stages()
     next_up: str | None = None
+    planned: WebhookDelivery | None = None
     with rt.coord.manifest_mutex(job_id):
         try:
             m = rt.store.read(job_id)
@@ -178,22 +187,23 @@ def _record_end(rt: Components, job_id: str, run_id: str, stage: str, status: st
         done = {s for s in stages if m.stage(s).status == "done"}
         m.progress = max(m.progress, progress, overall_progress(stages, done, None, 0.0))
         if status == "cancelled":
-            _finish(m, "cancelled", None, f"cancelled during {stage}")
+            planned = _finish(m, "cancelled", None, f"cancelled during {stage}")
         elif status == "failed":
-            _finish(m, "failed", error, message)
+            planned = _finish(m, "failed", error, message)
         elif (nxt := m.next_stage(stages)) is None:
             if m.state != "done":
                 m.completed_runs += 1
-            _finish(m, "done", None, "finished")
             m.progress, m.current_stage = 100.0, None
+            planned = _finish(m, "done", None, "finished")
         elif m.cancel_requested or rt.coord.cancel_requested(job_id):
-            _finish(m, "cancelled", None, f"cancelled after {stage}")
+            planned = _finish(m, "cancelled", None, f"cancelled after {stage}")
             status = "cancelled"
         else:
             m.message = f"{stage} done"
             next_up = nxt
         rt.store.write(m)
         final_progress = m.progress
+    rt.jobs.announce(job_id, planned)
     try:
         rt.coord.push_progress(job_id, run_id, stage, final_progress, m.message)
     except Exception as e:  # the cache is only a cache

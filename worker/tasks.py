@@ -10,7 +10,7 @@ import time
 from celery.signals import worker_ready, worker_shutdown
 
 from service.compose import compose
-from service.dispatch import RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK
+from service.dispatch import DELIVER_WEBHOOK_TASK, RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK
 from service.settings import load_settings
 
 from .app import app
@@ -77,3 +77,20 @@ def scan_survey(survey_id: str) -> int:
             return len(scan(rt.surveys, survey, rt.jobs, rt.scan_config)) if got else 0
     finally:
         rt.close()
+
+
+@app.task(name=DELIVER_WEBHOOK_TASK, bind=True, acks_late=True, max_retries=None, ignore_result=True)
+def deliver_webhook(self, job_id: str, delivery_id: str) -> str:
+    """One attempt at a webhook delivery (service.webhooks.deliver); a failed attempt comes back after its
+    backoff until the job's record says it was delivered or given up. Never touches a stage."""
+    from service.webhooks.deliver import deliver
+
+    rt = compose(load_settings(), self.app)
+    try:
+        out = deliver(rt, job_id, delivery_id)
+    finally:
+        rt.close()
+    if out.retry_after is not None:
+        # the manifest counts the attempts (not Celery's retries), so max_retries=None: give-up is its decision
+        raise self.retry(countdown=out.retry_after)
+    return out.status

@@ -51,6 +51,7 @@ class Survey(BaseModel):
     path: str  # resolved
     interval_s: float
     options: SurveyOptions = Field(default_factory=SurveyOptions)
+    callback_url: str | None = None  # every job of this survey announces its end there (service.webhooks)
     origin: str = "api"  # api | config
     created_at: float = 0.0
 
@@ -183,7 +184,7 @@ class SurveyRegistry:
         return self.dir / sid
 
     def register(self, owner: str, path: str, interval_s: float, name: str | None,
-                 options: SurveyOptions) -> Survey:
+                 options: SurveyOptions, callback_url: str | None = None) -> Survey:
         self._check_options(options)
         real = self.resolve(owner, path)
         if interval_s < self.min_interval_s:
@@ -196,7 +197,7 @@ class SurveyRegistry:
             raise SurveyError("path_taken", f"{path} (or a folder inside or around it) belongs to another owner's "
                                             f"survey; a folder has one owner")
         s = Survey(id=sid, owner=owner, name=name or real.name, path=str(real), interval_s=interval_s,
-                   options=options, origin="api", created_at=time.time())
+                   options=options, callback_url=callback_url, origin="api", created_at=time.time())
         atomic_write_text(self._folder(sid) / "survey.json", s.model_dump_json(indent=2))
         return s
 
@@ -236,7 +237,8 @@ class SurveyRegistry:
                 options = SurveyOptions(**entry.get("options", {}))
                 self._check_options(options)
                 out.append(Survey(id=survey_id(owner, str(real)), owner=owner, name=str(entry.get("name", real.name)),
-                                  path=str(real), interval_s=interval, options=options, origin="config"))
+                                  path=str(real), interval_s=interval, options=options, origin="config",
+                                  callback_url=entry.get("callback_url")))
             except (KeyError, TypeError, ValueError, SurveyError, ValidationError) as e:
                 log.error("surveys file %s, entry %d skipped: %s", self.surveys_file, i, e)
         return out

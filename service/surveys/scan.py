@@ -172,7 +172,7 @@ def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
     opts = {**survey.options.model_dump(), "source": str(JobLayout(final).input)}
     source = {"kind": "survey", "survey_id": survey.id, "set": image_set.name, "set_hash": h,
               "images": len(image_set.files)}
-    jobs.create(job_id, survey.owner, opts, source, survey_id=survey.id)
+    jobs.create(job_id, survey.owner, opts, source, survey_id=survey.id, callback_url=survey.callback_url)
     return True
 
 

@@ -25,6 +25,7 @@ import httpx
 import pytest
 import redis
 from svc_helpers import (
+    HOOK_SECRETS,
     KEYS,
     MAX_ENTRIES,
     MAX_UPLOAD,
@@ -276,6 +277,12 @@ def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
         "DUALPHYS_SURVEY_MIN_INTERVAL_S": "1",
         "DUALPHYS_SURVEY_SETTLE_S": "0",
         "DUALPHYS_SURVEY_MIN_IMAGES": "4",
+        # webhooks to loopback receivers in the tests (tests/service/test_webhooks.py), quick retries
+        "DUALPHYS_WEBHOOK_ALLOWED_HOSTS": json.dumps(["127.0.0.1"]),
+        "DUALPHYS_WEBHOOK_SECRETS": json.dumps(HOOK_SECRETS),
+        "DUALPHYS_WEBHOOK_MAX_ATTEMPTS": "3",
+        "DUALPHYS_WEBHOOK_BACKOFF_S": "0.3",
+        "DUALPHYS_WEBHOOK_TIMEOUT_S": "3",
     }
     try:
         stack.start_api()

@@ -16,6 +16,7 @@ import redis
 REPO = Path(__file__).resolve().parents[2]
 REDIS_URL = "redis://127.0.0.1:6379/15"
 KEYS = {"alice": "alice-key-0123456789abcdef", "bob": "bob-key-0123456789abcdef"}
+HOOK_SECRETS = {"alice": "alice-webhook-secret-0123456789"}  # bob has none: he cannot set a callback_url
 MAX_UPLOAD = 4 << 20
 MAX_ENTRIES = 200
 SCENE = {"views": 12, "width": 160, "height": 120, "preset": "medium", "seed": 0}
@@ -94,10 +95,15 @@ class RecordingDispatcher:
 
     def __init__(self) -> None:
         self.sent: list[tuple[str, str, str]] = []
+        self.webhooks: list[tuple[str, str]] = []  # (job_id, delivery_id)
 
     def send_stage(self, job_id: str, stage: str, run_id: str) -> str:
         self.sent.append((job_id, stage, run_id))
         return f"task-{len(self.sent)}"
+
+    def send_webhook(self, job_id: str, delivery_id: str, countdown: float | None = None) -> str:
+        self.webhooks.append((job_id, delivery_id))
+        return f"hook-{len(self.webhooks)}"
 
 
 # ---------------------------------------------------------------- job helpers

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response
 
-from service.api.deps import OwnerDep, ServicesDep, SurveysDep
+from service.api.deps import OwnerDep, ServicesDep, SettingsDep, SurveysDep
 from service.api.errors import api_error
 from service.api.schemas.inputs import SurveyCreate
 from service.api.schemas.responses import ErrorOut, ScanQueued, SubmittedSetOut, SurveyList, SurveyOut
 from service.dispatch import DispatchError
 from service.surveys.registry import Survey, SurveyError, SurveyNotFound, SurveyRegistry
+from service.webhooks.callback import CallbackRefused, check_callback_url
 
 router = APIRouter(prefix="/v1/surveys", tags=["surveys"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 409, 422, 503)}
@@ -21,6 +22,7 @@ def _out(registry: SurveyRegistry, s: Survey) -> SurveyOut:
     st = registry.state(s.id)
     sets = [SubmittedSetOut(set_hash=h, **v.model_dump()) for h, v in st.sets.items()]
     return SurveyOut(id=s.id, name=s.name, path=s.path, interval_s=s.interval_s, options=s.options.model_dump(),
+                     callback_url=s.callback_url,
                      origin=s.origin, created_at=s.created_at, last_scan_at=st.last_scan_at or None, scans=st.scans,
                      last_error=st.last_error, last_error_code=st.last_error_code,
                      waiting=[w.model_dump() for w in st.waiting], sets=sorted(sets, key=lambda x: x.submitted_at))
@@ -34,9 +36,15 @@ def _get(registry: SurveyRegistry, survey_id: str, owner: str) -> Survey:
 
 
 @router.post("", status_code=201, response_model=SurveyOut, responses=ERRORS, summary="Register a survey folder")
-def create_survey(body: SurveyCreate, owner: OwnerDep, registry: SurveysDep) -> SurveyOut:
+def create_survey(body: SurveyCreate, owner: OwnerDep, registry: SurveysDep, settings: SettingsDep) -> SurveyOut:
+    if body.callback_url:
+        try:
+            check_callback_url(body.callback_url, settings.webhook_allowed_hosts,
+                               settings.webhook_secret(owner) is not None)
+        except CallbackRefused as e:
+            raise api_error(422, e.code, str(e)) from None
     try:
-        s = registry.register(owner, body.path, body.interval_s, body.name, body.options)
+        s = registry.register(owner, body.path, body.interval_s, body.name, body.options, body.callback_url or None)
     except SurveyError as e:
         raise api_error(SURVEY_ERROR_STATUS.get(e.code, 422), e.code, str(e)) from None
     return _out(registry, s)

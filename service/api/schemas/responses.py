@@ -62,6 +62,20 @@ class RunOut(BaseModel):
     outcome: str | None
 
 
+class WebhookOut(BaseModel):
+    id: str = Field(..., description="delivery id, also the body's delivery_id and the X-Dualphys-Delivery header")
+    event: str = Field(..., description="job.done | job.failed | job.cancelled")
+    run_id: str
+    state: str
+    status: str = Field(..., description="pending | delivered | given_up")
+    attempts: int
+    last_status_code: int | None = Field(None, description="the receiver's HTTP status at the last attempt")
+    last_error: str | None = None
+    created_at: float
+    last_attempt_at: float | None = None
+    finished_at: float | None = Field(None, description="when it was delivered or given up")
+
+
 class JobOut(BaseModel):
     id: str
     state: str = Field(..., description="queued | running | cancelling | done | failed | cancelled")
@@ -80,6 +94,8 @@ class JobOut(BaseModel):
     ingest: IngestOut | None
     runs: list[RunOut]
     completed_runs: int
+    callback_url: str | None = None
+    webhooks: list[WebhookOut] = Field(default_factory=list, description="one event per run that ended")
 
     @classmethod
     def from_view(cls, v: StatusView) -> JobOut:
@@ -97,7 +113,9 @@ class JobOut(BaseModel):
                    created_at=m.created_at, updated_at=m.updated_at,
                    options={k: val for k, val in m.options.items() if k != "source"}, source=source,
                    survey_id=m.survey_id, stages=stages, error=JobErrorOut(**m.error.model_dump()) if m.error else None,
-                   ingest=ingest, runs=[RunOut(**r.model_dump()) for r in m.runs], completed_runs=m.completed_runs)
+                   ingest=ingest, runs=[RunOut(**r.model_dump()) for r in m.runs], completed_runs=m.completed_runs,
+                   callback_url=m.callback_url,
+                   webhooks=[WebhookOut(**d.model_dump(exclude={"body", "url"})) for d in m.webhooks])
 
 
 class JobList(BaseModel):
@@ -142,6 +160,7 @@ class SurveyOut(BaseModel):
     path: str
     interval_s: float
     options: dict
+    callback_url: str | None = None
     origin: str = Field(..., description="api | config")
     created_at: float
     last_scan_at: float | None
