@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 from svc_helpers import KEYS, METRICS, small_jpegs, zip_bytes
 
-from pipeline.cli import KEY_ENV, SERVER_ENV, main
+from pipeline.cli import main
+from service.client.commands import KEY_ENV, SERVER_ENV
 from service.client.download import NET_CHUNK, download_artifact
 from service.client.remote import ServiceClient
 
