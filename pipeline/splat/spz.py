@@ -23,7 +23,7 @@ camera convention). The change is a 180 degree turn about x: y and z of position
 and the SH coefficients that are odd in y or z change sign (the reference's ``flipSh`` for RDF -> RUB).
 ``export_spz`` turns RDF into RUB and ``read_spz`` back, so a round trip returns our frame.
 
-Worst-case error of a round trip (what tests/splat/test_spz.py asserts): position 2^-(fb+1) per axis (6.1e-5 at
+Worst-case error of a round trip (what tests/splat/test_spz.py asserts): position 2^-(fb+1) per axis (1.2e-4 at
 fb = 12), log-scale 1/32 inside [-10, 5.94] (clamped outside), opacity 0.5/255, SH DC 0.5/38.25 = 0.0131
 inside [-3.33, 3.33] (clamped outside: colour 0.5 +- 0.94), SH band 1 4.5/128, bands 2-3 8.5/128 inside
 [-1, 1], rotation 4.8e-3 rad.
