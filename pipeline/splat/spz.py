@@ -158,15 +158,32 @@ def _quantize_sh(x: np.ndarray, bits: int) -> np.ndarray:
     return np.clip(q, 0, 255).astype(np.uint8)
 
 
+def _pack_rotations_v2(q_xyzw: np.ndarray) -> np.ndarray:
+    """[N, 4] float32 unit quaternions (xyzw) -> [N, 3] u8: version 2's x, y, z with w made positive."""
+    half = np.float32(127.5)
+    sign = np.where(q_xyzw[:, 3:] < 0, -half, half)
+    return _to_u8(q_xyzw[:, :3] * sign + half)
+
+
 def export_spz(
-    params: dict[str, Tensor], path: str | os.PathLike[str] | None = None, *, antialiased: bool = False
+    params: dict[str, Tensor],
+    path: str | os.PathLike[str] | None = None,
+    *,
+    antialiased: bool = False,
+    version: int = SPZ_VERSION,
 ) -> bytes:
-    """Serialise Gaussian parameters (``pipeline.splat.gaussians`` layout, raw) to SPZ version 3 bytes.
+    """Serialise Gaussian parameters (``pipeline.splat.gaussians`` layout, raw) to SPZ bytes.
+
+    ``version`` 3 (the default) stores rotations as the smallest three components (10 bits each); 2 stores x, y,
+    z in 8 bits each with w derived, far coarser where w is small, for readers that stop at version 2
+    (GaussianSplats3D 0.4.7).
 
     Non-finite values cannot be stored: they are counted, logged and written as 0 (the PLY keeps them as they
     are). If ``path`` is given the bytes are also written there (atomically: temp file, then rename).
     """
     n = check_gaussians(params)
+    if version not in (2, 3):
+        raise ValueError(f"SPZ version {version} is not written here (2 and 3 are)")
     with torch.no_grad():
         a = {k: params[k].detach().to("cpu", torch.float32).numpy() for k in params}
     shn = a["shN"]  # [N, K-1, 3]
@@ -204,7 +221,7 @@ def export_spz(
     sh[:, :3] = _quantize_sh(sh_rest[:, :3], SH1_BITS)
     sh[:, 3:] = _quantize_sh(sh_rest[:, 3:], SH_REST_BITS)
 
-    header = _HEADER.pack(SPZ_MAGIC, SPZ_VERSION, n, degree, fb, FLAG_ANTIALIASED if antialiased else 0, 0)
+    header = _HEADER.pack(SPZ_MAGIC, version, n, degree, fb, FLAG_ANTIALIASED if antialiased else 0, 0)
     body = b"".join(
         [
             header,
@@ -212,7 +229,7 @@ def export_spz(
             _to_u8(alpha * 255.0).tobytes(),
             _to_u8(finite(a["sh0"]).reshape(n, 3) * (COLOR_SCALE * 255.0) + 127.5).tobytes(),
             _to_u8((finite(a["scales"]) + 10.0) * 16.0).tobytes(),
-            _pack_rotations(q_xyzw).tobytes(),
+            (_pack_rotations(q_xyzw) if version >= 3 else _pack_rotations_v2(q_xyzw)).tobytes(),
             sh.tobytes(),
         ]
     )
@@ -276,9 +293,10 @@ def read_spz(src: str | os.PathLike[str] | bytes | bytearray | memoryview) -> di
     if version >= 3:
         q_xyzw = _unpack_rotations(rot)
     else:  # version 2: x, y, z as round((q * 127.5) + 127.5) with w >= 0 derived
-        xyz = rot.reshape(n, 3).astype(np.float64) / 127.5 - 1.0
-        w = np.sqrt(np.clip(1.0 - (xyz * xyz).sum(axis=1, keepdims=True), 0.0, None))
-        q_xyzw = np.concatenate([xyz, w], axis=1).astype(np.float32)
+        xyz = rot.reshape(n, 3).astype(np.float32) * np.float32(1 / 127.5) - np.float32(1)  # float32 as the reference
+        x, y, z = xyz.T
+        w = np.sqrt(np.maximum(np.float32(1) - (x * x + y * y + z * z), np.float32(0)))
+        q_xyzw = np.concatenate([xyz, w[:, None]], axis=1)
     q_xyzw = q_xyzw * np.array([1.0, -1.0, -1.0, 1.0], dtype=np.float32)
     a = np.clip(alpha.astype(np.float64) / 255.0, 0.5 / 255.0, 254.5 / 255.0)
     shn = (sh.reshape(n, n_rest, 3).astype(np.float32) - 128.0) / 128.0 * _rdf_rub_signs(n_rest)
