@@ -25,7 +25,7 @@ from pipeline.job.table import STAGE_TABLE
 # artifact (a JobLayout attribute: a file, or a folder whose files are all listed) -> the stage whose marker
 # makes it final
 ARTIFACT_SOURCES: dict[str, str] = {name: s.name for s in STAGE_TABLE for name in s.publishes}
-STORED_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".webp", ".zip", ".gz", ".exr", ".jxl"})
+STORED_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".webp", ".zip", ".gz", ".exr", ".jxl", ".spz"})
 
 
 @dataclass(frozen=True)
@@ -86,6 +86,8 @@ def list_artifacts(job_dir: Path) -> list[Artifact]:
 def media_type(name: str) -> str:
     if name.endswith(".ply"):
         return "application/x-ply"
+    if name.endswith(".spz"):  # no registered type; the x- form as for PLY
+        return "application/x-spz"
     return mimetypes.guess_type(name)[0] or "application/octet-stream"
 
 

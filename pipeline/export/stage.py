@@ -19,6 +19,7 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.evaluate.rerender import training_views
     from pipeline.export.views import export_views
     from pipeline.splat.ply import export_ply
+    from pipeline.splat.spz import export_spz
     from pipeline.train.checkpoint import load_checkpoint
 
     layout = JobLayout(job)
@@ -26,8 +27,9 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     out = layout.output
     out.mkdir(parents=True, exist_ok=True)
     data = export_ply(state["gaussians"], layout.ply)
+    spz = export_spz(state["gaussians"], layout.spz)  # the same Gaussians, compressed (docs/SERVICE.md)
     counts = export_views(state, training_views(job, state), layout.renders)
     from pipeline.evaluate.report import write_report
 
     reports = write_report(job, out, export_s=time.perf_counter() - t0)
-    return {layout.ply.name: len(data), **counts, "report": [p.name for p in reports]}
+    return {layout.ply.name: len(data), layout.spz.name: len(spz), **counts, "report": [p.name for p in reports]}

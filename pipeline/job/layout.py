@@ -19,7 +19,8 @@ Job folder::
                         and, with ground truth, the full-resolution scores
       output/           restore: restored/ (the input photos de-watered: same names, sizes, formats, metadata),
                         confidence/ (one 8-bit map per photo: 0 = not restored, 255 = full confidence);
-                        export: reconstruction.ply, renders/{restored,with_water,attenuation,backscatter,depth}/
+                        export: reconstruction.ply, reconstruction.spz (the same Gaussians, SPZ),
+                        renders/{restored,with_water,attenuation,backscatter,depth}/
                         (the model's renders at the training resolution), report.json, report.html,
                         speed_vs_error.png
       .stages/<stage>.json   completion markers (config hash + result)
@@ -152,6 +153,11 @@ class JobLayout:
     @property
     def ply(self) -> Path:
         return self.output / "reconstruction.ply"
+
+    @property
+    def spz(self) -> Path:
+        """The reconstruction as SPZ (``pipeline.splat.spz``): the same Gaussians as ``ply``, compressed."""
+        return self.output / "reconstruction.spz"
 
     @property
     def report_json(self) -> Path:

@@ -207,3 +207,26 @@ def test_report_says_what_happened(job, tmp_path):
     assert "Held-out views: photo, model, ground truth" in html3
     for claim in ("<figcaption>restored J", "restored J PSNR", "restored J vs true"):  # shown for dualphys
         assert claim in html and claim not in html3, claim
+
+
+def test_export_writes_the_spz_beside_the_ply(job, record_property):
+    """The job's reconstruction.spz holds the PLY's Gaussians within the format's quantisation, several times
+    smaller (tests/splat/test_spz.py has the bounds' derivation and the reference cross-check)."""
+    import torch
+
+    from pipeline.splat.ply import read_ply
+    from pipeline.splat.spz import read_spz, spz_header
+
+    job_dir, results = job
+    layout = JobLayout(job_dir)
+    ply, spz = layout.ply.read_bytes(), layout.spz.read_bytes()
+    assert results["export"][layout.spz.name] == len(spz)
+    p, s = read_ply(ply), read_spz(spz)
+    head = spz_header(spz)
+    assert (head["version"], head["num_points"], head["sh_degree"]) == (3, len(p["means"]), 3)
+    ratio = len(ply) / len(spz)
+    record_property("spz_ratio", round(ratio, 2))
+    assert ratio > 5.0
+    assert (s["means"] - p["means"]).abs().max() <= 0.5 / 2 ** head["fractional_bits"] + 1e-5
+    assert (torch.sigmoid(s["opacities"]) - torch.sigmoid(p["opacities"])).abs().max() <= 0.5 / 255 + 1e-6
+    assert (s["scales"] - p["scales"].clamp(-10, 255 / 16 - 10)).abs().max() <= 1 / 32 + 1e-5

@@ -19,7 +19,8 @@ LAYOUT_FILE = Path("pipeline/job/layout.py")
 
 # The job folder's file names (the list, and what JobLayout adds: asserted to stay in it below).
 FILE_NAMES = ("job.json", "ingest.json", "classify.json", "water.json", "latest.pt", "train.json", "selection.json",
-              "recovery.json", "collapsed.pt", "evaluate.json", "reconstruction.ply", "report.json", "report.html",
+              "recovery.json", "collapsed.pt", "evaluate.json", "reconstruction.ply", "reconstruction.spz",
+              "report.json", "report.html",
               "speed_vs_error.png", ".stages", ".artifacts.json", "manifest.json", "log.txt", "source.json",
               "restore.json")
 # Folders whose names are ordinary words elsewhere ("train" the stage, "input" a report key): spelled as a path
@@ -115,7 +116,8 @@ def test_job_layout_paths():
         "checkpoint": "train/latest.pt", "train_result": "train/train.json", "selection": "train/selection.json",
         "train_config": "train/config.json", "recovery": "train/recovery.json", "collapsed": "train/collapsed.pt",
         "evaluate": "evaluate.json", "evaluate_renders": "evaluate", "true_camera": "evaluate/true_camera",
-        "output": "output", "ply": "output/reconstruction.ply", "report_json": "output/report.json",
+        "output": "output", "ply": "output/reconstruction.ply", "spz": "output/reconstruction.spz",
+        "report_json": "output/report.json",
         "report_html": "output/report.html", "curve_png": "output/speed_vs_error.png", "markers": ".stages",
         "renders": "output/renders", "restore_result": "restore.json", "restored": "output/restored",
         "confidence": "output/confidence",
