@@ -297,8 +297,9 @@ def add_client_commands(sub) -> None:
     s.add_argument("job")
     s.add_argument("--out", type=Path, default=None, help="folder for the results (default: ./<job id>)")
     s.add_argument("--only", action="append", default=[], metavar="PATTERN",
-                   help="only these artifacts (repeatable): a glob over the path ('*.ply', 'output/restored/*'); "
-                        "without '/' it also matches a file or folder name ('report.json', 'restored')")
+                   help="only these artifacts (repeatable): a glob over the artifact's path (GET "
+                        "/v1/jobs/JOB/artifacts lists them), e.g. '*.ply'; without '/' it also matches a file or "
+                        "folder name, e.g. 'restored'")
     s.add_argument("--bundle", action="store_true", help="everything as one zip, <out>/<job>.zip (not resumable)")
     s.set_defaults(func=cmd_download)
 
