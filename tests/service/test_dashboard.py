@@ -9,9 +9,11 @@ With DUALPHYS_DASHBOARD_SHOTS=<folder> the test also saves the screenshots docs/
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 import re
 import shutil
+import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,6 +86,12 @@ def context(browser, rec) -> Iterator[object]:
     ctx.close()
 
 
+def wait_js(page, what: str, expr: str, arg=None, timeout: float = 30) -> None:
+    """Poll a JS function in the page from Python: Playwright's wait_for_function evaluates its predicate with
+    eval inside the page, which the dashboard's Content-Security-Policy (rightly) refuses."""
+    wait_for(what, lambda: page.evaluate(expr, arg), timeout=timeout, interval=0.25)
+
+
 def sign_in(page, key: str) -> None:
     page.fill("#signin-key", key)
     page.click("#signin-form button[type=submit]")
@@ -146,6 +154,30 @@ def test_wrong_key_shows_a_clear_message_and_keeps_nothing(live, browser):
         ctx.close()
 
 
+@pytest.mark.timeout(120)
+def test_picked_files_are_zipped_into_a_valid_archive(live, browser):
+    """zip.js (picked images or a folder become one stored zip in the browser), read back by Python's zipfile."""
+    ctx = browser.new_context()
+    try:
+        page = ctx.new_page()
+        page.goto(live.url + "/")
+        data = page.evaluate("""async () => {
+            const { storeZip } = await import('/static/zip.js');
+            const a = new File([new Uint8Array([0, 1, 2, 250, 255])], 'a.png');
+            const b = new File(['h\u00e9llo '.repeat(5000)], 'b.jpg');
+            const blob = await storeZip([{name: 'dive/a.png', file: a}, {name: 'dive/s\u00fcd/b.jpg', file: b}]);
+            return Array.from(new Uint8Array(await blob.arrayBuffer()));
+        }""")
+    finally:
+        ctx.close()
+    z = zipfile.ZipFile(io.BytesIO(bytes(data)))
+    assert z.testzip() is None  # every CRC-32 checks
+    assert z.namelist() == ["dive/a.png", "dive/süd/b.jpg"]
+    assert z.read("dive/a.png") == bytes([0, 1, 2, 250, 255])
+    assert z.read("dive/süd/b.jpg") == ("héllo " * 5000).encode()
+    assert all(i.compress_type == zipfile.ZIP_STORED for i in z.infolist())
+
+
 @pytest.mark.timeout(JOB_TIMEOUT_S + 360)  # + the scene, generated once per cache
 def test_progress_is_watched_to_done(flow):
     p = flow.progress
@@ -166,7 +198,7 @@ def test_job_page_shows_stages_log_report_gallery_and_maps(live, flow):
     rows = page.query_selector_all("#stages-body tr")
     assert [r.get_attribute("data-stage") for r in rows] == [s["name"] for s in api_stages]
     assert all(r.query_selector("td:nth-child(3)").inner_text().endswith("s") for r in rows)
-    page.wait_for_function("document.querySelector('#job-log').textContent.length > 100")
+    wait_js(page, "the log tail", "() => document.querySelector('#job-log').textContent.length > 100")
     shot(page, "dashboard-job")
 
     page.click(".tabs [data-tab=report]")
@@ -177,15 +209,15 @@ def test_job_page_shows_stages_log_report_gallery_and_maps(live, flow):
     page.click(".tabs [data-tab=gallery]")
     n_views = sum(a["path"].startswith("output/renders/with_water/") for a in artifacts)
     assert n_views >= 2
-    page.wait_for_function(
-        "n => [...document.querySelectorAll('#gallery figure.pair img')].filter(i => i.complete && i.naturalWidth > 0)"
-        ".length >= n", arg=2 * min(n_views, 24), timeout=60_000)
+    wait_js(page, "the gallery's images",
+            "n => [...document.querySelectorAll('#gallery figure.pair img')]"
+            ".filter(i => i.complete && i.naturalWidth > 0).length >= n", arg=2 * min(n_views, 24), timeout=60)
     assert page.eval_on_selector_all("#gallery img", "imgs => imgs.every(i => i.src.startsWith('blob:'))")
     shot(page, "dashboard-gallery")
 
     page.click(".tabs [data-tab=maps]")
-    page.wait_for_function("[...document.querySelectorAll('#maps img')].filter(i => i.naturalWidth > 0).length >= 3",
-                           timeout=30_000)
+    wait_js(page, "the water maps",
+            "() => [...document.querySelectorAll('#maps img')].filter(i => i.naturalWidth > 0).length >= 3")
 
 
 @pytest.mark.timeout(120)
@@ -194,7 +226,7 @@ def test_downloads_match_the_artifact_checksums(live, flow):
     page.click(".tabs [data-tab=downloads]")
     with live.client("alice") as c:
         artifacts = {a["path"]: a for a in c.get(f"/v1/jobs/{flow.job_id}/artifacts").json()["artifacts"]}
-    page.wait_for_function("n => document.querySelectorAll('#files-body tr').length === n", arg=len(artifacts))
+    wait_js(page, "the file list", "n => document.querySelectorAll('#files-body tr').length === n", arg=len(artifacts))
     for path in ("output/report.json", "output/reconstruction.ply"):
         row = page.locator("#files-body tr", has_text=path).first
         with page.expect_download() as dl:
@@ -253,3 +285,34 @@ def test_sign_out_forgets_the_key(live, flow):
     assert page.evaluate("Object.keys(sessionStorage).length") == 0
     page.reload()
     page.wait_for_selector("#view-signin:not([hidden])")
+
+
+@pytest.mark.timeout(120)
+def test_surveys_page_registers_scans_and_shows_waiting_sets(live, browser, flow, scene_images):
+    """A survey folder with one set of 2 images (below the live stack's minimum of 4): registered through the page,
+    scanned with "Scan now" (the worker runs the scan), and shown waiting with its reason. No job is started."""
+    folder = live.survey_root / "dash-survey"
+    (folder / "dive-01").mkdir(parents=True)
+    for p in scene_images[:2]:
+        (folder / "dive-01" / p.name).write_bytes(p.read_bytes())
+    ctx = browser.new_context()
+    try:
+        page = ctx.new_page()
+        page.goto(live.url + "/surveys")
+        sign_in(page, KEYS["alice"])
+        page.wait_for_selector("#view-surveys:not([hidden])")
+        page.fill("#survey-form [name=path]", str(folder))
+        page.fill("#survey-form [name=name]", "dash-survey")
+        page.fill("#survey-form [name=interval_s]", "3600")
+        page.click("#survey-form button[type=submit]")
+        page.wait_for_selector("#survey-msg:text('Registered dash-survey')")
+        card = page.locator("[data-survey]", has_text="dash-survey")
+        card.locator("button", has_text="Scan now").click()
+        card.locator("li", has_text="too_few_images").wait_for(timeout=60_000)
+        assert "dive-01: 2 images" in card.locator("li").first.inner_text()
+        shot(page, "dashboard-surveys")
+        page.fill("#survey-form [name=path]", "/etc")
+        page.click("#survey-form button[type=submit]")
+        page.wait_for_selector("#survey-msg:text-matches('Refused: .*path_not_allowed')")
+    finally:
+        ctx.close()

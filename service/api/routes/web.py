@@ -13,9 +13,10 @@ from service.web.page import STATIC_DIR, render_index
 
 router = APIRouter(tags=["dashboard"], include_in_schema=False)
 
-# 'wasm-unsafe-eval' and blob: workers: the 3D viewer bundle (static/viewer/) may compile WebAssembly and start
-# workers from blobs; nothing else is loosened. The report is shown in a sandboxed srcdoc iframe without scripts.
-CSP = ("default-src 'self'; script-src 'self' 'wasm-unsafe-eval'; worker-src 'self' blob:; "
+# 'wasm-unsafe-eval' and blob:/data: workers: the 3D viewer bundle (static/viewer/) compiles WebAssembly and starts
+# workers from blob: and data: URLs; nothing else is loosened. The report is shown in a sandboxed srcdoc iframe
+# without scripts.
+CSP = ("default-src 'self'; script-src 'self' 'wasm-unsafe-eval'; worker-src 'self' blob: data:; "
        "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; connect-src 'self' blob: data:; "
        "font-src 'self'; frame-src 'self' blob:; object-src 'none'; base-uri 'none'; form-action 'none'; "
        "frame-ancestors 'none'")

@@ -33,7 +33,7 @@ async function card(s) {
     el("div", { class: "row between" },
       el("h3", {}, s.name, " ", el("span", { class: "muted mono" }, s.path)),
       el("div", { class: "row" }, status, scan, s.origin === "api" ? drop : null)),
-    el("p", { class: "muted" }, `every ${s.interval_s} s · ${s.scans} scans · last ${when(s.last_scan_at) || "never"}`),
+    el("p", { class: "muted" }, `every ${s.interval_s} s · ${s.scans} scan${s.scans === 1 ? "" : "s"} · last ${when(s.last_scan_at) || "never"}`),
     s.last_error ? el("p", { class: "error" }, `last scan: ${s.last_error} (${s.last_error_code || "error"})`) : null,
     sets.length
       ? el("table", {}, el("thead", {}, el("tr", {}, ...["set", "images", "job", "state", "submitted"].map((h) => el("th", {}, h)))),
