@@ -266,6 +266,22 @@ def test_another_owners_job_is_not_found(live, flow):
 
 
 @pytest.mark.timeout(60)
+def test_delete_from_the_job_page(live, flow):
+    """Delete (after the browser's confirm) removes the job: gone from the list, 404 from the API."""
+    page = flow.page
+    page.goto(f"{live.url}/jobs/{flow.job_id}")
+    page.wait_for_selector("#job-summary[data-state=done]")
+    page.once("dialog", lambda d: d.accept())
+    page.click("#job-delete")
+    page.wait_for_selector("#view-jobs:not([hidden])")
+    wait_js(page, "the job to leave the list", "id => !document.querySelector(`#jobs-body tr[data-job='${id}']`)",
+            arg=flow.job_id)
+    with live.client("alice") as c:
+        r = c.get(f"/v1/jobs/{flow.job_id}")
+    assert r.status_code == 404 and r.json()["error"]["code"] == "job_not_found"
+
+
+@pytest.mark.timeout(60)
 def test_key_never_in_a_url_and_nothing_leaves_the_service(live, flow, rec):
     assert rec.urls, "no request recorded"
     for key in (*KEYS.values(), WRONG_KEY):
