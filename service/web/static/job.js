@@ -25,13 +25,13 @@ function url(path) { return `/v1/jobs/${encodeURIComponent(job)}${path}`; }
 
 function track(blobUrl) { blobUrls.push(blobUrl); return blobUrl; }
 
-async function blobImage(path, alt) {
-  const img = el("img", { alt, loading: "lazy", "data-path": path });
-  try {
-    img.src = track(URL.createObjectURL(await getBlob(url(`/artifacts/${path}`))));
-  } catch (e) {
-    img.alt = `${alt}: ${errorText(e)}`;
-  }
+// An <img> whose file is fetched with the key and shown through a blob: URL; `pending` collects the loads so a
+// view can wait for all of them (they run in parallel).
+function blobImage(path, alt, pending) {
+  const img = el("img", { alt, "data-path": path });
+  pending.push(getBlob(url(`/artifacts/${path}`))
+    .then((blob) => { img.src = track(URL.createObjectURL(blob)); })
+    .catch((e) => { img.alt = `${alt}: ${errorText(e)}`; }));
   return img;
 }
 
@@ -143,26 +143,23 @@ async function showReport() {
 async function showGallery() {
   const views = byPrefix("output/renders/with_water/");
   const restored = new Map(byPrefix("output/renders/restored/").map((a) => [a.path.split("/").pop(), a.path]));
-  const gallery = $("#gallery");
-  gallery.replaceChildren();
-  for (const a of views.slice(0, GALLERY_MAX)) {
-    const name = a.path.split("/").pop();
-    const pair = el("figure", { class: "pair" });
-    gallery.append(pair);
-    pair.append(await blobImage(a.path, `${name} with water`));
-    if (restored.has(name)) pair.append(await blobImage(restored.get(name), `${name} restored`));
-    pair.append(el("figcaption", {}, `${name}: with water | restored`));
-  }
   const photos = byPrefix("output/restored/");
+  const pending = [];
+  message($("#gallery-msg"), views.length || photos.length ? "Loading the views…" : "This job has no rendered views.");
+  $("#gallery").replaceChildren(...views.slice(0, GALLERY_MAX).map((a) => {
+    const name = a.path.split("/").pop();
+    return el("figure", { class: "pair" },
+      blobImage(a.path, `${name} with water`, pending),
+      restored.has(name) ? blobImage(restored.get(name), `${name} restored`, pending) : null,
+      el("figcaption", {}, `${name}: with water | restored`));
+  }));
   show($("#photos-title"), photos.length > 0);
-  const grid = $("#photos");
-  grid.replaceChildren();
-  for (const a of photos.slice(0, GALLERY_MAX)) {
-    const fig = el("figure", {});
-    grid.append(fig);
-    fig.append(await blobImage(a.path, a.path.split("/").pop()), el("figcaption", {}, a.path.split("/").pop()));
-  }
-  message($("#gallery-msg"), views.length || photos.length ? "" : "This job has no rendered views.");
+  $("#photos").replaceChildren(...photos.slice(0, GALLERY_MAX).map((a) => {
+    const name = a.path.split("/").pop();
+    return el("figure", {}, blobImage(a.path, name, pending), el("figcaption", {}, name));
+  }));
+  await Promise.all(pending);
+  if (views.length || photos.length) message($("#gallery-msg"), "");
 }
 
 async function showMaps() {
@@ -173,16 +170,13 @@ async function showMaps() {
     select.onchange = () => showMaps();
   }
   const name = select.value;
-  const maps = $("#maps");
-  maps.replaceChildren();
-  for (const [folder, label] of MAPS) {
-    const path = `output/renders/${folder}/${name}`;
-    if (!artifacts.some((a) => a.path === path)) continue;
-    const fig = el("figure", {});
-    maps.append(fig);
-    fig.append(await blobImage(path, label), el("figcaption", {}, label));
-  }
-  message($("#maps-msg"), maps.children.length ? "" : "This job wrote no water maps (mode 3dgs models no water).");
+  const pending = [];
+  const figures = MAPS.map(([folder, label]) => [`output/renders/${folder}/${name}`, label])
+    .filter(([path]) => artifacts.some((a) => a.path === path))
+    .map(([path, label]) => el("figure", {}, blobImage(path, label, pending), el("figcaption", {}, label)));
+  $("#maps").replaceChildren(...figures);
+  message($("#maps-msg"), figures.length ? "" : "This job wrote no water maps (mode 3dgs models no water).");
+  await Promise.all(pending);
 }
 
 function loadViewerScript() {
