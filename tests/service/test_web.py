@@ -28,7 +28,7 @@ def test_pages_serve_the_shell_without_a_key(api, path):
 def test_options_form_offers_every_client_option(api):
     html = api.get("/").text
     names = re.findall(r'name="([a-z_]+)"', html.split('<div class="options">')[1].split("</div>")[0])
-    assert names == list(CLIENT_OPTIONS)
+    assert names == [*CLIENT_OPTIONS, "callback_url"]  # the webhook URL rides beside the options
     assert '<option value="fast" selected>fast</option>' in html
 
 

@@ -59,6 +59,7 @@ async function register(ev) {
   const msg = $("#survey-msg");
   const body = { path: f.get("path").trim(), interval_s: Number(f.get("interval_s")) };
   if (f.get("name").trim()) body.name = f.get("name").trim();
+  if (f.get("callback_url").trim()) body.callback_url = f.get("callback_url").trim();
   const opts = f.get("options").trim();
   if (opts) {
     try { body.options = JSON.parse(opts); } catch { msg.textContent = "job options: not valid JSON"; return; }
