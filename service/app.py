@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse
 from .api.deps import Services
 from .api.errors import error_body, install_error_handlers
 from .api.routes import artifacts, health, jobs, surveys
+from .api.routes.web import mount_dashboard
 from .broker import producer
 from .compose import compose
 from .dispatch import TaskSender
@@ -64,4 +65,5 @@ def create_app(settings: Settings | None = None, celery_app: TaskSender | None =
 
     for r in (health.router, jobs.router, artifacts.router, surveys.router):
         app.include_router(r)
+    mount_dashboard(app)
     return app

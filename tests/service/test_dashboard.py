@@ -1,0 +1,334 @@
+"""The dashboard in a real browser (Debian's Chromium driven by Playwright; no browser is downloaded) against the
+live stack (uvicorn + Celery worker + Redis): a wrong key's message, sign-in, an upload through the page with
+options, progress watched to done, the job page (stages, log, report, gallery, water maps, downloads checked
+against the artifact checksums, the 3D tab), another owner's job reported as not found, and every request the
+browser made free of the key and of any other host. ONE tiny job runs through the stack (module fixture).
+
+With DUALPHYS_DASHBOARD_SHOTS=<folder> the test also saves the screenshots docs/img/ holds."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import re
+import shutil
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import pytest
+from svc_helpers import KEYS, METRICS, REPO, upload, wait_for
+
+playwright_api = pytest.importorskip("playwright.sync_api", reason="the browser test needs playwright")
+
+pytestmark = pytest.mark.slow
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-dev-shm-usage"]
+WRONG_KEY = "wrong-key-0123456789abcdef"
+JOB_TIMEOUT_S = 720  # about a minute alone; CI shares the 2 cores with other work
+SHOTS = os.environ.get("DUALPHYS_DASHBOARD_SHOTS")
+VIEWER_JS = REPO / "service" / "web" / "static" / "viewer" / "viewer.js"
+
+
+@dataclass
+class Recorded:
+    urls: list[str] = field(default_factory=list)
+    api_auth: list[tuple[str, bool]] = field(default_factory=list)  # (path, had a Bearer header)
+
+    def on_request(self, req) -> None:
+        self.urls.append(req.url)
+        path = urlsplit(req.url).path
+        if path.startswith("/v1/"):
+            self.api_auth.append((path, req.headers.get("authorization", "").startswith("Bearer ")))
+
+
+@dataclass
+class Flow:
+    page: object
+    rec: Recorded
+    job_id: str
+    progress: list[float]
+    bob_job: str
+
+
+def shot(page, name: str) -> None:
+    if SHOTS:
+        Path(SHOTS).mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(Path(SHOTS) / f"{name}.png"), full_page=False)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    if not Path(CHROMIUM).exists():
+        pytest.fail("the dashboard test needs Debian's chromium (apt-get install chromium; .ci/run does it)",
+                    pytrace=False)
+    with playwright_api.sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def rec() -> Recorded:
+    return Recorded()
+
+
+@pytest.fixture(scope="module")
+def context(browser, rec) -> Iterator[object]:
+    ctx = browser.new_context(viewport={"width": 1280, "height": 860}, accept_downloads=True)
+    ctx.on("request", rec.on_request)
+    yield ctx
+    ctx.close()
+
+
+def wait_js(page, what: str, expr: str, arg=None, timeout: float = 30) -> None:
+    """Poll a JS function in the page from Python: Playwright's wait_for_function evaluates its predicate with
+    eval inside the page, which the dashboard's Content-Security-Policy (rightly) refuses."""
+    wait_for(what, lambda: page.evaluate(expr, arg), timeout=timeout, interval=0.25)
+
+
+def sign_in(page, key: str) -> None:
+    page.fill("#signin-key", key)
+    page.click("#signin-form button[type=submit]")
+
+
+@pytest.fixture(scope="module")
+def flow(live, context, rec, scene_zip, tmp_path_factory) -> Flow:
+    """Sign in, upload the scene through the page (iterations 60, preset fast), and watch its row to done."""
+    page = context.new_page()
+    page.goto(live.url + "/")
+    page.wait_for_selector("#view-signin:not([hidden])")
+    shot(page, "dashboard-signin")
+    sign_in(page, KEYS["alice"])
+    page.wait_for_selector("#view-jobs:not([hidden])")
+    archive = tmp_path_factory.mktemp("dash") / "dive.zip"
+    archive.write_bytes(scene_zip)
+    page.set_input_files("#upload-archive", str(archive))
+    page.click("#upload-form summary")
+    page.fill("#upload-form [name=iterations]", "60")
+    page.select_option("#upload-form [name=preset]", "fast")
+    page.click("#upload-submit")
+    msg = page.wait_for_selector("#upload-msg:text-matches('Job .* started')", timeout=120_000).inner_text()
+    job_id = re.search(r"Job (\S+) started", msg).group(1)
+
+    # bob's job, queued behind alice's and cancelled at once: it never runs, it only has to exist
+    with live.client("bob") as bob:
+        r = upload(bob, scene_zip, filename="bob.zip", iterations=5)
+        assert r.status_code == 201, r.text
+        bob_job = r.json()["id"]
+        assert bob.post(f"/v1/jobs/{bob_job}/cancel").status_code == 202
+
+    row = f"#jobs-body tr[data-job='{job_id}']"
+    progress: list[float] = []
+
+    def done() -> bool:
+        state = page.get_attribute(row, "data-state")
+        progress.append(float(page.eval_on_selector(f"{row} progress", "p => p.value")))
+        if state == "running" and len(progress) == 8:
+            shot(page, "dashboard-jobs")
+        assert state not in ("failed", "cancelled"), f"job {state}"
+        return state == "done"
+
+    wait_for("the dashboard to show the job done", done, timeout=JOB_TIMEOUT_S, interval=1.0)
+    METRICS["dashboard progress samples"] = f"{len(progress)} ({progress[0]:.1f} .. {progress[-1]:.1f})"
+    return Flow(page, rec, job_id, progress, bob_job)
+
+
+@pytest.mark.timeout(120)
+def test_wrong_key_shows_a_clear_message_and_keeps_nothing(live, browser):
+    ctx = browser.new_context()
+    try:
+        page = ctx.new_page()
+        page.goto(live.url + "/")
+        sign_in(page, WRONG_KEY)
+        err = page.wait_for_selector("#signin-error:not([hidden])")
+        assert "not accepted" in err.inner_text()
+        assert page.is_visible("#view-signin") and not page.is_visible("#view-jobs")
+        assert page.evaluate("Object.keys(sessionStorage).length") == 0
+    finally:
+        ctx.close()
+
+
+@pytest.mark.timeout(120)
+def test_picked_files_are_zipped_into_a_valid_archive(live, browser):
+    """zip.js (picked images or a folder become one stored zip in the browser), read back by Python's zipfile."""
+    ctx = browser.new_context()
+    try:
+        page = ctx.new_page()
+        page.goto(live.url + "/")
+        data = page.evaluate("""async () => {
+            const { storeZip } = await import('/static/zip.js');
+            const a = new File([new Uint8Array([0, 1, 2, 250, 255])], 'a.png');
+            const b = new File(['h\u00e9llo '.repeat(5000)], 'b.jpg');
+            const blob = await storeZip([{name: 'dive/a.png', file: a}, {name: 'dive/s\u00fcd/b.jpg', file: b}]);
+            return Array.from(new Uint8Array(await blob.arrayBuffer()));
+        }""")
+    finally:
+        ctx.close()
+    z = zipfile.ZipFile(io.BytesIO(bytes(data)))
+    assert z.testzip() is None  # every CRC-32 checks
+    assert z.namelist() == ["dive/a.png", "dive/süd/b.jpg"]
+    assert z.read("dive/a.png") == bytes([0, 1, 2, 250, 255])
+    assert z.read("dive/süd/b.jpg") == ("héllo " * 5000).encode()
+    assert all(i.compress_type == zipfile.ZIP_STORED for i in z.infolist())
+
+
+@pytest.mark.timeout(JOB_TIMEOUT_S + 360)  # + the scene, generated once per cache
+def test_progress_is_watched_to_done(flow):
+    p = flow.progress
+    assert p[-1] == 100
+    assert all(b >= a for a, b in zip(p, p[1:])), f"progress went back: {p}"
+    assert len(set(p)) >= 3, f"the bar moved too little to have been watched: {p}"
+
+
+@pytest.mark.timeout(300)
+def test_job_page_shows_stages_log_report_gallery_and_maps(live, flow):
+    page = flow.page
+    page.click(f"#jobs-body a[href='/jobs/{flow.job_id}']")
+    page.wait_for_selector("#job-summary[data-state=done]")
+    assert page.url == f"{live.url}/jobs/{flow.job_id}"
+    with live.client("alice") as c:
+        api_stages = c.get(f"/v1/jobs/{flow.job_id}").json()["stages"]
+        artifacts = c.get(f"/v1/jobs/{flow.job_id}/artifacts").json()["artifacts"]
+    rows = page.query_selector_all("#stages-body tr")
+    assert [r.get_attribute("data-stage") for r in rows] == [s["name"] for s in api_stages]
+    assert all(r.query_selector("td:nth-child(3)").inner_text().endswith("s") for r in rows)
+    wait_js(page, "the log tail", "() => document.querySelector('#job-log').textContent.length > 100")
+    shot(page, "dashboard-job")
+
+    page.click(".tabs [data-tab=report]")
+    report = page.frame_locator("#report-frame").locator("h1")
+    assert "dualphys report" in report.inner_text(timeout=30_000)
+    shot(page, "dashboard-report")
+
+    page.click(".tabs [data-tab=gallery]")
+    n_views = sum(a["path"].startswith("output/renders/with_water/") for a in artifacts)
+    assert n_views >= 2
+    wait_js(page, "the gallery's images",
+            "n => [...document.querySelectorAll('#gallery figure.pair img')]"
+            ".filter(i => i.complete && i.naturalWidth > 0).length >= n", arg=2 * min(n_views, 24), timeout=60)
+    assert page.eval_on_selector_all("#gallery img", "imgs => imgs.every(i => i.src.startsWith('blob:'))")
+    shot(page, "dashboard-gallery")
+
+    page.click(".tabs [data-tab=maps]")
+    wait_js(page, "the water maps",
+            "() => [...document.querySelectorAll('#maps img')].filter(i => i.naturalWidth > 0).length >= 3")
+
+
+@pytest.mark.timeout(120)
+def test_downloads_match_the_artifact_checksums(live, flow):
+    page = flow.page
+    page.click(".tabs [data-tab=downloads]")
+    with live.client("alice") as c:
+        artifacts = {a["path"]: a for a in c.get(f"/v1/jobs/{flow.job_id}/artifacts").json()["artifacts"]}
+    wait_js(page, "the file list", "n => document.querySelectorAll('#files-body tr').length === n", arg=len(artifacts))
+    for path in ("output/report.json", "output/reconstruction.ply"):
+        row = page.locator("#files-body tr", has_text=path).first
+        with page.expect_download() as dl:
+            row.locator("button").click()
+        data = Path(dl.value.path()).read_bytes()
+        assert hashlib.sha256(data).hexdigest() == artifacts[path]["sha256"], path
+        assert dl.value.suggested_filename == path.rsplit("/", 1)[-1]
+
+
+@pytest.mark.timeout(120)
+def test_3d_tab(flow):
+    page = flow.page
+    page.click(".tabs [data-tab=viewer]")
+    if VIEWER_JS.exists():
+        # the viewer's own tests check what it renders; here: it mounts in the page with our options
+        page.wait_for_selector("#viewer canvas", timeout=60_000)
+        shot(page, "dashboard-viewer")
+    else:
+        page.wait_for_selector("#viewer-msg:text('not part of this installation')", timeout=15_000)
+
+
+@pytest.mark.timeout(60)
+def test_another_owners_job_is_not_found(live, flow):
+    page = flow.page
+    page.click("nav a[data-nav=jobs]")
+    page.wait_for_selector(f"#jobs-body tr[data-job='{flow.job_id}']")
+    assert page.query_selector(f"#jobs-body tr[data-job='{flow.bob_job}']") is None
+    page.fill("#open-job-id", flow.bob_job)
+    page.click("#open-job button")
+    page.wait_for_selector("#job-error:not([hidden])")
+    assert page.inner_text("#job-title") == "Job not found"
+    assert "another API key" in page.inner_text("#job-error")
+    assert not page.is_visible("#job-body")
+    page.goto(f"{live.url}/jobs/{flow.bob_job}")  # typed into the address bar: same answer
+    page.wait_for_selector("#job-error:not([hidden])")
+    assert page.inner_text("#job-title") == "Job not found"
+
+
+@pytest.mark.timeout(60)
+def test_delete_from_the_job_page(live, flow):
+    """Delete (after the browser's confirm) removes the job: gone from the list, 404 from the API."""
+    page = flow.page
+    page.goto(f"{live.url}/jobs/{flow.job_id}")
+    page.wait_for_selector("#job-summary[data-state=done]")
+    page.once("dialog", lambda d: d.accept())
+    page.click("#job-delete")
+    page.wait_for_selector("#view-jobs:not([hidden])")
+    wait_js(page, "the job to leave the list", "id => !document.querySelector(`#jobs-body tr[data-job='${id}']`)",
+            arg=flow.job_id)
+    with live.client("alice") as c:
+        r = c.get(f"/v1/jobs/{flow.job_id}")
+    assert r.status_code == 404 and r.json()["error"]["code"] == "job_not_found"
+
+
+@pytest.mark.timeout(60)
+def test_key_never_in_a_url_and_nothing_leaves_the_service(live, flow, rec):
+    assert rec.urls, "no request recorded"
+    for key in (*KEYS.values(), WRONG_KEY):
+        leaked = [u for u in rec.urls if key in u]
+        assert not leaked, f"the key appears in {leaked[:3]}"
+    hosts = {urlsplit(u).netloc for u in rec.urls if urlsplit(u).scheme in ("http", "https")}
+    assert hosts == {urlsplit(live.url).netloc}, hosts
+    assert rec.api_auth and all(ok for _, ok in rec.api_auth), [p for p, ok in rec.api_auth if not ok][:5]
+    METRICS["dashboard requests recorded"] = str(len(rec.urls))
+
+
+@pytest.mark.timeout(60)
+def test_sign_out_forgets_the_key(live, flow):
+    page = flow.page
+    page.click("#signout")
+    page.wait_for_selector("#view-signin:not([hidden])")
+    assert page.evaluate("Object.keys(sessionStorage).length") == 0
+    page.reload()
+    page.wait_for_selector("#view-signin:not([hidden])")
+
+
+@pytest.mark.timeout(120)
+def test_surveys_page_registers_scans_and_shows_waiting_sets(live, browser, flow, scene_images):
+    """A survey folder with one set of 2 images (below the live stack's minimum of 4): registered through the page,
+    scanned with "Scan now" (the worker runs the scan), and shown waiting with its reason. No job is started."""
+    folder = live.survey_root / "dash-survey"
+    (folder / "dive-01").mkdir(parents=True)
+    for p in scene_images[:2]:
+        (folder / "dive-01" / p.name).write_bytes(p.read_bytes())
+    ctx = browser.new_context()
+    try:
+        page = ctx.new_page()
+        page.goto(live.url + "/surveys")
+        sign_in(page, KEYS["alice"])
+        page.wait_for_selector("#view-surveys:not([hidden])")
+        page.fill("#survey-form [name=path]", str(folder))
+        page.fill("#survey-form [name=name]", "dash-survey")
+        page.fill("#survey-form [name=interval_s]", "3600")
+        page.click("#survey-form button[type=submit]")
+        page.wait_for_selector("#survey-msg:text('Registered dash-survey')")
+        card = page.locator("[data-survey]", has_text="dash-survey")
+        card.locator("button", has_text="Scan now").click()
+        card.locator("li", has_text="too_few_images").wait_for(timeout=60_000)
+        assert "dive-01: 2 images" in card.locator("li").first.inner_text()
+        shot(page, "dashboard-surveys")
+        page.fill("#survey-form [name=path]", "/etc")
+        page.click("#survey-form button[type=submit]")
+        page.wait_for_selector("#survey-msg:text-matches('Refused: .*path_not_allowed')")
+    finally:
+        ctx.close()
