@@ -145,6 +145,12 @@ class JobLayout:
         """Renders from the true cameras (with_water/, restored/), jobs with ground truth only."""
         return self.evaluate_renders / "true_camera"
 
+    @property
+    def previews(self) -> Path:
+        """Small JPEGs of the photos and their restored versions that the dashboard shows (the service makes them
+        on first request: ``previews/<original|restored>/<stem>.jpg``); not results, never downloaded."""
+        return self.root / ".previews"
+
     # ------------------------------------------------------------------ export
     @property
     def output(self) -> Path:

@@ -207,13 +207,29 @@ def test_job_page_shows_stages_log_report_gallery_and_maps(live, flow):
     shot(page, "dashboard-report")
 
     page.click(".tabs [data-tab=gallery]")
+    n_photos = sum(a["path"].startswith("output/restored/") for a in artifacts)
     n_views = sum(a["path"].startswith("output/renders/with_water/") for a in artifacts)
-    assert n_views >= 2
-    wait_js(page, "the gallery's images",
-            "n => [...document.querySelectorAll('#gallery figure.pair img')]"
-            ".filter(i => i.complete && i.naturalWidth > 0).length >= n", arg=2 * min(n_views, 24), timeout=60)
+    assert n_photos >= 2 and n_views >= 2
+    wait_js(page, "the gallery's photo pairs (as taken | restored previews) and the model's views",
+            "n => [...document.querySelectorAll('#gallery figure.pair img, #photos figure.pair img')]"
+            ".filter(i => i.complete && i.naturalWidth > 0).length >= n",
+            arg=2 * min(n_photos, 24) + 2 * min(n_views, 24), timeout=60)
+    sizes = page.eval_on_selector_all("#gallery figure.pair img", "imgs => imgs.map(i => [i.dataset.preview, "
+                                      "i.naturalWidth, i.naturalHeight])")
+    assert {k.split("/")[0] for k, _, _ in sizes} == {"original", "restored"}
+    assert all(0 < max(w, h) <= 640 for _, w, h in sizes), sizes
     assert page.eval_on_selector_all("#gallery img", "imgs => imgs.every(i => i.src.startsWith('blob:'))")
     shot(page, "dashboard-gallery")
+    stem = sizes[0][0].split("/")[1]
+    with live.client("alice") as c:
+        r = c.get(f"/v1/jobs/{flow.job_id}/previews/restored/{stem}")
+        assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg" and r.content[:2] == b"\xff\xd8"
+        r = c.get(f"/v1/jobs/{flow.job_id}/previews/restored/no-such-photo")
+        assert (r.status_code, r.json()["error"]["code"]) == (404, "preview_not_found")
+        assert c.get(f"/v1/jobs/{flow.job_id}/previews/thumbnail/{stem}").status_code == 422
+    with live.client("bob") as c:  # another owner's job: exactly like a missing one
+        r = c.get(f"/v1/jobs/{flow.job_id}/previews/original/{stem}")
+        assert (r.status_code, r.json()["error"]["code"]) == (404, "job_not_found")
 
     page.click(".tabs [data-tab=maps]")
     wait_js(page, "the water maps",

@@ -1,8 +1,9 @@
-"""/v1/jobs/{id}/artifacts and /bundle: list with sizes and SHA-256, one file (HTTP Range), or all as a zip."""
+"""/v1/jobs/{id}/artifacts and /bundle: list with sizes and SHA-256, one file (HTTP Range), or all as a zip;
+/previews: small JPEGs of the photos and their restored versions (the dashboard's gallery)."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 from urllib.parse import quote
 
 from fastapi import APIRouter, Header
@@ -12,6 +13,7 @@ from service.api.deps import JobDep, JobsDep
 from service.api.errors import api_error
 from service.api.schemas.responses import ArtifactList, ArtifactOut, ErrorOut
 from service.artifacts import find_artifact, list_artifacts, media_type, zip_stream
+from service.previews import preview
 
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["artifacts"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 409, 416)}
@@ -62,3 +64,13 @@ def get_bundle(job: JobDep, jobs: JobsDep) -> StreamingResponse:
         raise api_error(409, "no_artifacts", "the job has no results yet")
     return StreamingResponse(zip_stream(job_dir, items), media_type="application/zip",
                              headers={"Content-Disposition": f'attachment; filename="{job.id}.zip"'})
+
+
+@router.get("/previews/{kind}/{stem}", responses={**ERRORS, 200: {"content": {"image/jpeg": {}}}},
+            response_class=FileResponse, summary="A photo or its restored version, small (JPEG, long side <= 640)")
+def get_preview(job: JobDep, jobs: JobsDep, kind: Literal["original", "restored"], stem: str) -> FileResponse:
+    """``stem`` is the photo's file name without its extension (``output/restored/<stem>.*`` names it too)."""
+    p = preview(jobs.job_dir(job.id), kind, stem)
+    if p is None:
+        raise api_error(404, "preview_not_found", f"job {job.id} has no {kind} photo {stem!r} (yet)")
+    return FileResponse(p, media_type="image/jpeg", headers={"Cache-Control": "private, max-age=300"})

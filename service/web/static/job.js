@@ -140,23 +140,37 @@ async function showReport() {
   show($("#report-msg"), false);
 }
 
+// A preview (small JPEG the service makes) of a photo or of its restored version, fetched with the key.
+function previewImage(kind, stem, alt, pending) {
+  const img = el("img", { alt, "data-preview": `${kind}/${stem}` });
+  pending.push(getBlob(url(`/previews/${kind}/${encodeURIComponent(stem)}`))
+    .then((blob) => { img.src = track(URL.createObjectURL(blob)); })
+    .catch((e) => { img.alt = `${alt}: ${errorText(e)}`; }));
+  return img;
+}
+
+// Your photos as taken | de-watered (previews), then the model's own views: with water | restored.
 async function showGallery() {
+  const photos = byPrefix("output/restored/");
   const views = byPrefix("output/renders/with_water/");
   const restored = new Map(byPrefix("output/renders/restored/").map((a) => [a.path.split("/").pop(), a.path]));
-  const photos = byPrefix("output/restored/");
   const pending = [];
-  message($("#gallery-msg"), views.length || photos.length ? "Loading the views…" : "This job has no rendered views.");
-  $("#gallery").replaceChildren(...views.slice(0, GALLERY_MAX).map((a) => {
+  message($("#gallery-msg"), views.length || photos.length ? "Loading the views…" : "This job has no restored photos.");
+  $("#gallery").replaceChildren(...photos.slice(0, GALLERY_MAX).map((a) => {
+    const name = a.path.split("/").pop();
+    const stem = name.replace(/\.[^.]*$/, "");
+    return el("figure", { class: "pair" },
+      previewImage("original", stem, `${name} as taken`, pending),
+      previewImage("restored", stem, `${name} restored`, pending),
+      el("figcaption", {}, `${name}: as taken | restored (full size in Downloads)`));
+  }));
+  show($("#photos-title"), views.length > 0);
+  $("#photos").replaceChildren(...views.slice(0, GALLERY_MAX).map((a) => {
     const name = a.path.split("/").pop();
     return el("figure", { class: "pair" },
       blobImage(a.path, `${name} with water`, pending),
       restored.has(name) ? blobImage(restored.get(name), `${name} restored`, pending) : null,
       el("figcaption", {}, `${name}: with water | restored`));
-  }));
-  show($("#photos-title"), photos.length > 0);
-  $("#photos").replaceChildren(...photos.slice(0, GALLERY_MAX).map((a) => {
-    const name = a.path.split("/").pop();
-    return el("figure", {}, blobImage(a.path, name, pending), el("figcaption", {}, name));
   }));
   await Promise.all(pending);
   if (views.length || photos.length) message($("#gallery-msg"), "");
