@@ -17,6 +17,7 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     t0 = time.perf_counter()
     from pipeline.evaluate.rerender import training_views
+    from pipeline.export.cameras import export_cameras
     from pipeline.export.views import export_views
     from pipeline.splat.ply import export_ply
     from pipeline.train.checkpoint import load_checkpoint
@@ -26,8 +27,10 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     out = layout.output
     out.mkdir(parents=True, exist_ok=True)
     data = export_ply(state["gaussians"], layout.ply)
-    counts = export_views(state, training_views(job, state), layout.renders)
+    views = training_views(job, state)
+    counts = export_views(state, views, layout.renders)
+    n_cameras = export_cameras(views, state["gaussians"]["means"].detach().cpu().numpy(), out / "cameras.json")
     from pipeline.evaluate.report import write_report
 
     reports = write_report(job, out, export_s=time.perf_counter() - t0)
-    return {layout.ply.name: len(data), **counts, "report": [p.name for p in reports]}
+    return {layout.ply.name: len(data), "cameras.json": n_cameras, **counts, "report": [p.name for p in reports]}

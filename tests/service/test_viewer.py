@@ -1,0 +1,214 @@
+"""The dashboard's 3D viewer bundle (``service/web/static/viewer/viewer.js``) in a real headless Chromium.
+
+A tiny HTTP server in the test serves the built bundle, a minimal page calling ``DualphysViewer.mount`` and a
+generated scene (PLY from ``pipeline.splat.ply`` and ``cameras.json`` from ``pipeline.export.cameras``); the scene
+files need ``Authorization: Bearer <key>`` as the service's artifacts do. Chromium is Debian's, driven by
+Playwright (no browser download) and rendering WebGL2 in software (SwiftShader through ANGLE).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.export.cameras import export_cameras
+from pipeline.scene.records import Camera, View
+from pipeline.splat.gaussians import make_gaussians, rgb_to_sh0
+from pipeline.splat.ply import export_ply
+
+CHROMIUM = "/usr/bin/chromium"
+BUNDLE = Path(__file__).resolve().parents[2] / "service" / "web" / "static" / "viewer" / "viewer.js"
+KEY = "test-viewer-key-0123"
+# software WebGL2: there is no GPU on the developers' machines or CI's
+CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--use-gl=angle", "--use-angle=swiftshader",
+                 "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
+BACKGROUND = np.array([0x10, 0x18, 0x20])  # the viewer's clear colour
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+pytestmark = pytest.mark.skipif(not Path(CHROMIUM).is_file(), reason="Debian's chromium is not installed")
+
+PAGE = """<!doctype html><html><body style="margin:0;background:#000">
+<div id="view" style="width:480px;height:360px"></div>
+<script src="/static/viewer/viewer.js"></script>
+<script>
+window.mountViewer = (opts) => DualphysViewer.mount(document.getElementById("view"), opts)
+  .then((h) => { window.viewer = h; return {splats: h.numSplats, cameras: h.numCameras}; });
+</script></body></html>"""
+
+
+def _cameras(n: int = 5) -> list[View]:
+    """``n`` cameras on an arc 4 units from the scene's centre (0, 0, 4), looking at it, image-up = world -y."""
+    cam = Camera(160, 120, 150.0, 150.0, 80.0, 60.0)
+    views = []
+    for i in range(n):
+        a = math.radians(-30 + 60 * i / max(n - 1, 1))
+        c = np.array([4 * math.sin(a), -0.5, 4 - 4 * math.cos(a)])
+        z = np.array([0.0, 0.0, 4.0]) - c
+        z /= np.linalg.norm(z)
+        x = np.cross([0.0, 1.0, 0.0], z)  # y down: x = y_down x z
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])  # cam_from_world rows
+        views.append(View(f"frame_{i:04d}.png", cam, R, -R @ c))
+    return views
+
+
+def _scene(n: int = 3000, seed: int = 0) -> dict[str, torch.Tensor]:
+    """A sandy floor (y = +1, below: y points down) with three coloured blobs on it, around (0, 0, 4)."""
+    g = torch.Generator().manual_seed(seed)
+    floor = torch.rand(n, 3, generator=g) * torch.tensor([4.0, 0.02, 4.0]) + torch.tensor([-2.0, 1.0, 2.0])
+    blobs, colours = [floor], [torch.tensor([0.76, 0.66, 0.45]).expand(n, 3)]
+    for centre, rgb in [((-0.8, 0.4, 4.0), (0.9, 0.2, 0.2)), ((0.0, 0.3, 4.5), (0.2, 0.8, 0.3)),
+                        ((0.8, 0.5, 3.8), (0.2, 0.4, 0.9))]:
+        m = n // 3
+        blobs.append(torch.tensor(centre) + 0.25 * torch.randn(m, 3, generator=g))
+        colours.append(torch.tensor(rgb).expand(m, 3))
+    means, rgb = torch.cat(blobs), torch.cat(colours)
+    N = len(means)
+    return make_gaussians(means, torch.full((N, 3), math.log(0.04)), torch.tensor([1.0, 0, 0, 0]).expand(N, 4),
+                          torch.full((N,), 3.0), rgb_to_sh0(rgb)[:, None, :], torch.zeros(N, 0, 3))
+
+
+class _Handler(BaseHTTPRequestHandler):
+    root: Path
+    files: Path
+    seen: list[tuple[str, str | None]]
+
+    def log_message(self, *args) -> None:  # quiet: the test asserts on ``seen`` instead
+        pass
+
+    def _send(self, code: int, body: bytes, ctype: str) -> None:
+        self.send_response(code)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+        auth = self.headers.get("Authorization")
+        self.seen.append((self.path, auth))
+        if self.path == "/":
+            return self._send(200, PAGE.encode(), "text/html")
+        if self.path.startswith("/static/viewer/"):
+            p = BUNDLE.parent / self.path.rsplit("/", 1)[1]
+            return self._send(200, p.read_bytes(), "text/javascript") if p.is_file() else self._send(404, b"", "")
+        if self.path.startswith("/files/"):
+            if auth != f"Bearer {KEY}":
+                err = {"error": {"code": "unauthorized", "message": "missing or wrong API key"}}
+                return self._send(401, json.dumps(err).encode(), "application/json")
+            p = self.files / self.path.rsplit("/", 1)[1]
+            return self._send(200, p.read_bytes(), "application/octet-stream")
+        self._send(404, b"", "text/plain")
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    files = tmp_path_factory.mktemp("viewer_files")
+    export_ply(_scene(), files / "scene.ply")
+    export_cameras(_cameras(), _scene()["means"].detach().numpy(), files / "cameras.json")
+    handler = type("H", (_Handler,), {"files": files, "seen": []})
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{httpd.server_address[1]}", handler.seen, files
+    httpd.shutdown()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def _shot(page) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(page.locator("#view canvas").screenshot())).convert("RGB"), dtype=float)
+
+
+def _not_background(img: np.ndarray) -> float:
+    return float((np.abs(img - BACKGROUND).max(axis=2) > 24).mean())
+
+
+def _wait_drawn(page, timeout_s: float = 20.0) -> np.ndarray:
+    """The canvas once the splats are drawn (Spark sorts them in a worker, so the first frames can be empty)."""
+    img = _shot(page)
+    for _ in range(int(timeout_s / 0.25)):
+        if _not_background(img) > 0.05:
+            break
+        page.wait_for_timeout(250)
+        img = _shot(page)
+    return img
+
+
+@pytest.mark.timeout(120)
+def test_viewer_renders_the_scene_and_follows_the_mouse(server, browser):
+    url, seen, _ = server
+    seen.clear()
+    page = browser.new_page(viewport={"width": 480, "height": 360})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url + "/")
+    info = page.evaluate("""k => mountViewer({splatUrl: '/files/scene.ply', format: 'ply',
+        headers: {Authorization: 'Bearer ' + k}, camerasUrl: '/files/cameras.json'})""", KEY)
+    assert info == {"splats": 6000, "cameras": 5}
+    first = _wait_drawn(page)
+    cover = _not_background(first)
+    assert cover > 0.25, f"only {cover:.1%} of the canvas is drawn"
+    assert first.std() > 10
+    # starts on the first camera (by name), upright: the floor (y = +1, below the cameras) fills the lower half
+    pos = page.evaluate("viewer.camera.position.toArray()")
+    assert np.allclose(pos, _cameras()[0].center, atol=1e-5)
+    sand = np.abs(first - [0.76 * 255, 0.66 * 255, 0.45 * 255]).max(axis=2) < 60  # [H, W]
+    h = len(sand)
+    assert sand[h // 2:].mean() > 3 * sand[: h // 2].mean()
+
+    box = page.locator("#view canvas").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page.mouse.move(cx + 120, cy + 30, steps=8)
+    page.mouse.up()
+    page.wait_for_timeout(500)
+    orbited = _wait_drawn(page)
+    moved = float(np.abs(orbited - first).mean())
+    assert moved > 8, f"orbiting changed the image by only {moved:.1f} grey levels"
+    assert not np.allclose(page.evaluate("viewer.camera.position.toArray()"), pos)
+
+    d0 = page.evaluate("viewer.camera.position.distanceTo(viewer.controls.target)")
+    page.mouse.wheel(0, -400)
+    page.wait_for_timeout(500)
+    zoomed = _wait_drawn(page)
+    assert page.evaluate("viewer.camera.position.distanceTo(viewer.controls.target)") < 0.9 * d0
+    assert float(np.abs(zoomed - orbited).mean()) > 5
+    assert not errors
+
+    # the key went only in the header, and only for the scene files
+    assert {p for p, _ in seen if p.startswith("/files/")} == {"/files/scene.ply", "/files/cameras.json"}
+    assert all(a == f"Bearer {KEY}" for p, a in seen if p.startswith("/files/"))
+    assert not any(KEY in p for p, _ in seen)
+    page.close()
+
+
+@pytest.mark.timeout(60)
+def test_viewer_says_why_when_the_key_is_wrong(server, browser):
+    url, _, _ = server
+    page = browser.new_page(viewport={"width": 480, "height": 360})
+    page.goto(url + "/")
+    err = page.evaluate("""() => mountViewer({splatUrl: '/files/scene.ply', format: 'ply',
+        headers: {Authorization: 'Bearer wrong'}, camerasUrl: null}).then(() => 'mounted', e => String(e))""")
+    assert "HTTP 401" in err
+    assert page.locator("#view").get_attribute("data-viewer-state") == "error"
+    assert "could not be shown" in page.locator("#view .dualphys-viewer-message").inner_text()
+    assert page.locator("#view canvas").count() == 0
+    page.close()

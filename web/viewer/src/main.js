@@ -1,0 +1,145 @@
+// The dashboard's 3D viewer: window.DualphysViewer.mount(container, {splatUrl, format, headers, camerasUrl}).
+//
+// The splat file (and cameras.json) are fetched here, with the caller's headers (the artifacts need the Bearer
+// key), and the bytes handed to Spark; nothing ever goes into a URL. The scene is shown in the PLY's own frame
+// (COLMAP world: the training cameras look down +z with y pointing down in the image); the three.js camera is
+// placed on one of those cameras with its up vector set to the cameras' mean "image up", so the first view is
+// upright and in frame.
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
+import { cameraFrustums, startPose } from "./cameras.js";
+
+export const VERSION = "0.1.0";
+
+async function fetchBytes(url, headers) {
+  // credentials "omit": the key travels only in the Authorization header the caller gave us.
+  const res = await fetch(url, { headers: headers || {}, credentials: "omit", cache: "no-store" });
+  if (!res.ok) throw new Error(`could not load ${url}: HTTP ${res.status}`);
+  return new Uint8Array(await res.arrayBuffer());
+}
+
+async function fetchJson(url, headers) {
+  return JSON.parse(new TextDecoder().decode(await fetchBytes(url, headers)));
+}
+
+function showMessage(container, text) {
+  const box = document.createElement("div");
+  box.className = "dualphys-viewer-message";
+  box.textContent = text;
+  box.style.cssText = "position:absolute;left:8px;top:8px;padding:4px 8px;background:#0008;color:#fff;" +
+    "font:13px sans-serif;border-radius:4px;pointer-events:none";
+  container.appendChild(box);
+  return box;
+}
+
+/**
+ * Show a Gaussian-splat file in `container` (which should have a size; the canvas fills it).
+ * @param {HTMLElement} container
+ * @param {{splatUrl: string, format?: 'ply'|'spz', headers?: object, camerasUrl?: string|null}} opts
+ * @returns {Promise<{dispose(): void, camera: THREE.PerspectiveCamera, controls: OrbitControls,
+ *   numSplats: number, numCameras: number, render(): void}>}
+ */
+export async function mount(container, opts) {
+  const { splatUrl, format = "ply", headers = {}, camerasUrl = null } = opts || {};
+  if (!splatUrl) throw new Error("DualphysViewer.mount: splatUrl is required");
+  if (format !== "ply" && format !== "spz") throw new Error(`DualphysViewer.mount: unknown format ${format}`);
+  container.dataset.viewerState = "loading";
+  if (getComputedStyle(container).position === "static") container.style.position = "relative";
+  const status = showMessage(container, "Loading the reconstruction…");
+
+  let renderer = null;
+  let frame = 0;
+  let disposed = false;
+  try {
+    const [bytes, cams] = await Promise.all([
+      fetchBytes(splatUrl, headers),
+      camerasUrl ? fetchJson(camerasUrl, headers) : Promise.resolve(null),
+    ]);
+
+    const width = Math.max(container.clientWidth, 1);
+    const height = Math.max(container.clientHeight, 1);
+    // preserveDrawingBuffer: the page (and the tests) can read the canvas back as an image.
+    renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
+    renderer.setPixelRatio(window.devicePixelRatio || 1);
+    renderer.setSize(width, height);
+    renderer.setClearColor(0x101820, 1);
+    renderer.domElement.style.display = "block";
+    container.appendChild(renderer.domElement);
+
+    const scene = new THREE.Scene();
+    scene.add(new SparkRenderer({ renderer }));
+    const mesh = new SplatMesh({ fileBytes: bytes, fileType: format });
+    await mesh.initialized;
+    scene.add(mesh);
+
+    const box = mesh.getBoundingBox(true);
+    const pose = startPose(cams, box);
+    const camera = new THREE.PerspectiveCamera(pose.fovY, width / height, pose.near, pose.far);
+    camera.up.copy(pose.up);
+    camera.position.copy(pose.position);
+    camera.lookAt(pose.target);
+
+    let numCameras = 0;
+    if (cams && cams.cameras && cams.cameras.length) {
+      const frustums = cameraFrustums(cams.cameras, pose.markerSize);
+      scene.add(frustums);
+      numCameras = cams.cameras.length;
+    }
+
+    const controls = new OrbitControls(camera, renderer.domElement);
+    controls.target.copy(pose.target);
+    controls.enableDamping = false;
+    controls.screenSpacePanning = true;
+    controls.update();
+
+    const render = () => renderer.render(scene, camera);
+    const loop = () => {
+      if (disposed) return;
+      frame = requestAnimationFrame(loop);
+      render();
+    };
+    loop();
+
+    const resize = new ResizeObserver(() => {
+      const w = Math.max(container.clientWidth, 1);
+      const h = Math.max(container.clientHeight, 1);
+      renderer.setSize(w, h);
+      camera.aspect = w / h;
+      camera.updateProjectionMatrix();
+    });
+    resize.observe(container);
+
+    status.remove();
+    container.dataset.viewerState = "ready";
+    return {
+      camera,
+      controls,
+      render,
+      numCameras,
+      numSplats: (mesh.packedSplats || mesh.extSplats || {}).numSplats || 0,
+      dispose() {
+        disposed = true;
+        cancelAnimationFrame(frame);
+        resize.disconnect();
+        controls.dispose();
+        mesh.dispose();
+        renderer.dispose();
+        renderer.domElement.remove();
+        delete container.dataset.viewerState;
+      },
+    };
+  } catch (err) {
+    disposed = true;
+    cancelAnimationFrame(frame);
+    if (renderer) {
+      renderer.dispose();
+      renderer.domElement.remove();
+    }
+    status.textContent = `The 3D view could not be shown: ${err.message || err}`;
+    container.dataset.viewerState = "error";
+    throw err;
+  }
+}
+
+window.DualphysViewer = { mount, VERSION };
