@@ -5,7 +5,9 @@ Same world frame as ``reconstruction.ply`` (the SfM model's). Per camera: ``name
 ``forward`` and ``up`` [3] (world directions of the optical axis and of the image's up), ``fov_x_deg`` /
 ``fov_y_deg``, ``width`` / ``height`` / ``fx`` / ``fy`` / ``cx`` / ``cy`` at the training resolution, and
 ``median_depth``: the median camera-z of the Gaussians in front of it (where the viewer aims; null if none is).
-Top level: ``extent`` (the cameras' bounding-box diagonal) and ``count``.
+Top level: ``extent`` (the cameras' bounding-box diagonal), ``count`` and ``display``: how the viewer shows the
+PLY's colours, ``colour_space`` ("linear": the viewer encodes them to sRGB) and ``water`` (the homogeneous medium
+``beta_D``, ``beta_B`` in 1/scene-unit and ``B_inf``, for its "with water" switch; null in mode 3dgs).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,8 +55,26 @@ def camera_record(view: View, means: np.ndarray | None = None) -> dict:
     }
 
 
-def cameras_document(views: Sequence[View], means: np.ndarray | None = None) -> dict:
-    """The whole ``cameras.json`` document for ``views`` (sorted by name) and the Gaussians' ``means`` [N, 3]."""
+def viewer_display(state: dict[str, Any]) -> dict:
+    """``display`` for a training checkpoint ``state``: its colour space and its water as one homogeneous medium
+    (β_D the effective coefficient the report gives, the running mean over training views of eq. 5's w·β·(1 − γE)·T;
+    the network medium's per-pixel terms are left out)."""
+    from pipeline.train.model import model_from_state
+
+    model = model_from_state(state)
+    m, water = model.medium, None
+    if m is not None:
+        bd = state["medium"].get("beta_eff_mean")
+        if bd is None:
+            bd = m.w * m.beta_D * m.water_factor
+        water = {k: [float(x) for x in v.detach().flatten()] for k, v in
+                 (("beta_D", bd), ("beta_B", m.beta_B), ("B_inf", m.B_inf))}
+    return {"colour_space": model.colour_space, "water": water}
+
+
+def cameras_document(views: Sequence[View], means: np.ndarray | None = None, display: dict | None = None) -> dict:
+    """The whole ``cameras.json`` document for ``views`` (sorted by name), the Gaussians' ``means`` [N, 3] and
+    ``display`` (:func:`viewer_display`; the PLY's colours as they are when None)."""
     if means is not None:
         means = np.asarray(means, dtype=np.float64).reshape(-1, 3)
         if len(means) > _DEPTH_SAMPLE:
@@ -66,12 +87,14 @@ def cameras_document(views: Sequence[View], means: np.ndarray | None = None) -> 
         "frame": "reconstruction.ply world; camera axes x right, y down, z forward (OpenCV/COLMAP)",
         "count": len(ordered),
         "extent": extent,
+        "display": display or {"colour_space": "srgb", "water": None},
         "cameras": [camera_record(v, means) for v in ordered],
     }
 
 
-def export_cameras(views: Sequence[View], means: np.ndarray | None, path: str | os.PathLike[str]) -> int:
+def export_cameras(views: Sequence[View], means: np.ndarray | None, path: str | os.PathLike[str],
+                   display: dict | None = None) -> int:
     """Write ``cameras.json`` to ``path``; returns the number of cameras."""
-    doc = cameras_document(views, means)
+    doc = cameras_document(views, means, display)
     Path(path).write_text(json.dumps(doc, indent=1))
     return doc["count"]

@@ -17,7 +17,7 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     t0 = time.perf_counter()
     from pipeline.evaluate.rerender import training_views
-    from pipeline.export.cameras import export_cameras
+    from pipeline.export.cameras import export_cameras, viewer_display
     from pipeline.export.views import export_views
     from pipeline.splat.ply import export_ply
     from pipeline.train.checkpoint import load_checkpoint
@@ -29,7 +29,8 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     data = export_ply(state["gaussians"], layout.ply)
     views = training_views(job, state)
     counts = export_views(state, views, layout.renders)
-    n_cameras = export_cameras(views, state["gaussians"]["means"].detach().cpu().numpy(), out / "cameras.json")
+    n_cameras = export_cameras(views, state["gaussians"]["means"].detach().cpu().numpy(), out / "cameras.json",
+                               viewer_display(state))
     from pipeline.evaluate.report import write_report
 
     reports = write_report(job, out, export_s=time.perf_counter() - t0)

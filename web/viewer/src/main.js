@@ -9,6 +9,7 @@ import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
 import { cameraFrustums, startPose } from "./cameras.js";
+import { backgroundColour, installDisplay } from "./water.js";
 
 export const VERSION = "0.1.0";
 
@@ -31,6 +32,21 @@ function showMessage(container, text) {
     "font:13px sans-serif;border-radius:4px;pointer-events:none";
   container.appendChild(box);
   return box;
+}
+
+function waterToggle(container, onChange) {
+  const label = document.createElement("label");
+  label.className = "dualphys-viewer-water";
+  label.title = "Show the scene through the water the job measured (its homogeneous medium), or restored";
+  label.style.cssText = "position:absolute;right:8px;top:8px;padding:4px 8px;background:#0008;color:#fff;" +
+    "font:13px sans-serif;border-radius:4px;cursor:pointer;user-select:none";
+  const box = document.createElement("input");
+  box.type = "checkbox";
+  box.style.marginRight = "4px";
+  box.addEventListener("change", () => onChange(box.checked));
+  label.append(box, "With water");
+  container.appendChild(label);
+  return label;
 }
 
 /**
@@ -72,6 +88,21 @@ export async function mount(container, opts) {
     const mesh = new SplatMesh({ fileBytes: bytes, fileType: format });
     await mesh.initialized;
     scene.add(mesh);
+    const display = cams ? cams.display : null;
+    const setWaterColours = installDisplay(mesh, display);
+    let withWater = false;
+    const setWater = (flag) => {
+      if (!setWaterColours) return false;
+      withWater = Boolean(flag);
+      setWaterColours(withWater);
+      renderer.setClearColor(backgroundColour(display, withWater), 1);
+      if (toggle) toggle.querySelector("input").checked = withWater;
+      return withWater;
+    };
+    let toggle = null;
+    if (setWaterColours) {
+      toggle = waterToggle(container, (flag) => setWater(flag));
+    }
 
     const box = mesh.getBoundingBox(true);
     const pose = startPose(cams, box);
@@ -117,11 +148,14 @@ export async function mount(container, opts) {
       controls,
       render,
       numCameras,
+      hasWater: Boolean(setWaterColours),
+      setWater,
       numSplats: (mesh.packedSplats || mesh.extSplats || {}).numSplats || 0,
       dispose() {
         disposed = true;
         cancelAnimationFrame(frame);
         resize.disconnect();
+        if (toggle) toggle.remove();
         controls.dispose();
         mesh.dispose();
         renderer.dispose();
