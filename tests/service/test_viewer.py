@@ -120,6 +120,9 @@ def server(tmp_path_factory):
     export_ply(_scene(), files / "scene.ply")
     export_cameras(_cameras(), _scene()["means"].detach().numpy(), files / "cameras.json",
                    {"colour_space": "srgb", "water": WATER})
+    # the same scene as if trained in linear light, no medium (mode 3dgs)
+    export_cameras(_cameras(), _scene()["means"].detach().numpy(), files / "cameras_linear.json",
+                   {"colour_space": "linear", "water": None})
     handler = type("H", (_Handler,), {"files": files, "seen": []})
     httpd = ThreadingHTTPServer(("127.0.0.1", 0), handler)
     threading.Thread(target=httpd.serve_forever, daemon=True).start()
@@ -135,13 +138,15 @@ def browser():
         b.close()
 
 
-def _reference_render(view: View, scale: float, water: dict | None = None) -> np.ndarray:
-    """``view``'s image of :func:`_scene` by ``pipeline.splat.rasterize`` (torch reference), 0-255, [H, W, 3] for
-    the camera scaled by ``scale``: on the viewer's background, or through ``water`` per pixel (eq. 3 with eq. 6
-    on the rendered depth's range, B∞ where no Gaussian covers the pixel)."""
+@functools.cache
+def _reference_render(view_index: int, scale: float, wet: bool = False) -> np.ndarray:
+    """Camera ``view_index``'s image of :func:`_scene` by ``pipeline.splat.rasterize`` (torch reference), 0-255,
+    [H, W, 3] for the camera scaled by ``scale``: on the viewer's background, or (``wet``) through :data:`WATER` per
+    pixel (eq. 3 with eq. 6 on the rendered depth's range, B∞ where no Gaussian covers the pixel)."""
     from pipeline.splat.gaussians import activate
     from pipeline.splat.rasterize import rasterize
 
+    view, water = _cameras()[view_index], WATER if wet else None
     g, cam = activate(_scene()), view.camera.scaled(scale)
     with torch.no_grad():
         out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, g.sh,
@@ -157,9 +162,15 @@ def _reference_render(view: View, scale: float, water: dict | None = None) -> np
 
 
 def _shot(page) -> np.ndarray:
+    """The canvas's own pixels (``toDataURL``; the viewer keeps its drawing buffer), without the page's overlays
+    (the "With water" switch), [H, W, 3] 0-255."""
+    import base64
+
     from PIL import Image
 
-    return np.asarray(Image.open(io.BytesIO(page.locator("#view canvas").screenshot())).convert("RGB"), dtype=float)
+    url = page.evaluate("document.querySelector('#view canvas').toDataURL('image/png')")
+    png = base64.b64decode(url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
 
 
 def _not_background(img: np.ndarray) -> float:
@@ -178,7 +189,7 @@ def _wait_drawn(page, timeout_s: float = 20.0) -> np.ndarray:
 
 
 @pytest.mark.timeout(120)
-def test_viewer_renders_the_scene_and_follows_the_mouse(server, browser):
+def test_viewer_renders_the_scene_with_and_without_water_and_follows_the_mouse(server, browser):
     url, seen, _ = server
     seen.clear()
     page = browser.new_page(viewport={"width": 480, "height": 360})
@@ -199,11 +210,27 @@ def test_viewer_renders_the_scene_and_follows_the_mouse(server, browser):
     h = len(sand)
     assert sand[h // 2:].mean() > 3 * sand[: h // 2].mean()
     # ... and it is that camera's view: our own rasterizer's render of it, at 1/6 of the canvas (same aspect)
-    ref = _reference_render(_cameras()[0], 0.5)  # [60, 80, 3]
+    ref = _reference_render(0, 0.5)  # [60, 80, 3]
     small = first.reshape(60, 6, 80, 6, 3).mean(axis=(1, 3))
     corr = float(np.corrcoef(ref.ravel(), small.ravel())[0, 1])
     # measured 0.96 (mean difference 6.9 grey levels); the same render mirrored scores 0.48, upside down -0.37
     assert corr > 0.85 and float(np.abs(ref - small).mean()) < 15, corr
+
+    # "With water": the job's medium at the viewer's distances
+    assert page.evaluate("viewer.hasWater") and page.locator("#view .dualphys-viewer-water").is_visible()
+    page.locator("#view .dualphys-viewer-water input").check()
+    page.wait_for_timeout(500)
+    wet = _shot(page)
+    small = wet.reshape(60, 6, 80, 6, 3).mean(axis=(1, 3))
+    ref = _reference_render(0, 0.5, wet=True)
+    corr = float(np.corrcoef(ref.ravel(), small.ravel())[0, 1])
+    diff = np.abs(ref - small).mean(axis=(0, 1))  # [3]
+    # measured: corr 0.98, mean difference R/G/B 3.1 / 3.4 / 3.2 grey levels (the viewer waters each Gaussian at
+    # its centre's distance, the reference each pixel at its blended depth); the dry reference is 64 / 40 / 37 off
+    assert corr > 0.9 and diff.max() < 12, (corr, diff)
+    page.evaluate("viewer.setWater(false)")
+    page.wait_for_timeout(500)
+    assert float(np.abs(_wait_drawn(page) - first).mean()) < 2  # back to the restored scene
 
     box = page.locator("#view canvas").bounding_box()
     cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
@@ -232,28 +259,23 @@ def test_viewer_renders_the_scene_and_follows_the_mouse(server, browser):
     page.close()
 
 
-@pytest.mark.timeout(120)
-def test_with_water_shows_the_jobs_medium_from_the_viewers_distances(server, browser):
+@pytest.mark.timeout(60)
+def test_linear_light_colours_are_encoded_for_the_screen(server, browser):
     url, _, _ = server
     page = browser.new_page(viewport={"width": 480, "height": 360})
     page.goto(url + "/")
     page.evaluate("""k => mountViewer({splatUrl: '/files/scene.ply', format: 'ply',
-        headers: {Authorization: 'Bearer ' + k}, camerasUrl: '/files/cameras.json'})""", KEY)
-    dry = _wait_drawn(page)
-    assert page.evaluate("viewer.hasWater") and page.locator("#view .dualphys-viewer-water").is_visible()
-    page.locator("#view .dualphys-viewer-water input").check()
-    page.wait_for_timeout(500)
-    wet = _shot(page)
-    small = wet.reshape(60, 6, 80, 6, 3).mean(axis=(1, 3))[8:]  # the top rows hold the switch's label
-    ref = _reference_render(_cameras()[0], 0.5, WATER)[8:]
-    corr = float(np.corrcoef(ref.ravel(), small.ravel())[0, 1])
-    diff = np.abs(ref - small).mean(axis=(0, 1))  # [3]
-    # measured: corr 0.98, mean difference R/G/B 3.0 / 3.6 / 3.6 grey levels (the viewer waters each Gaussian at
-    # its centre's distance, the reference each pixel at its blended depth); the dry reference is 74 / 38 / 34 off
-    assert corr > 0.9 and diff.max() < 12, (corr, diff)
-    page.evaluate("viewer.setWater(false)")
-    page.wait_for_timeout(500)
-    assert float(np.abs(_wait_drawn(page) - dry).mean()) < 2  # back to the restored scene
+        headers: {Authorization: 'Bearer ' + k}, camerasUrl: '/files/cameras_linear.json'})""", KEY)
+    shown = _wait_drawn(page).reshape(60, 6, 80, 6, 3).mean(axis=(1, 3))
+    assert not page.evaluate("viewer.hasWater") and page.locator("#view .dualphys-viewer-water").count() == 0
+    ref = _reference_render(0, 0.5)  # [60, 80, 3] the colours as they are (srgb), on BACKGROUND
+    covered = np.abs(ref - BACKGROUND).max(axis=2) > 24  # [60, 80]
+    # encoded (x^(1/2.2)) colours are brighter than the stored ones: the sand's 0.76 / 0.66 / 0.45 -> .88 / .83 / .70
+    # (measured: the drawn pixels' mean 166 against 127 as stored; pure sand 224 / 210 / 177 for 225 / 211 / 177)
+    assert shown[covered].mean() > ref[covered].mean() + 20
+    sand = np.abs(ref - [0.76 * 255, 0.66 * 255, 0.45 * 255]).max(axis=2) < 20  # [60, 80] pure sand in the render
+    expect = 255 * np.array([0.76, 0.66, 0.45]) ** (1 / 2.2)
+    assert np.abs(np.median(shown[sand], axis=0) - expect).max() < 12, np.median(shown[sand], axis=0)
     page.close()
 
 
