@@ -86,6 +86,10 @@ export async function mount(container, opts) {
     const scene = new THREE.Scene();
     scene.add(new SparkRenderer({ renderer }));
     const mesh = new SplatMesh({ fileBytes: bytes, fileType: format });
+    // SPZ stores RUB axes (x right, y up, z back; the format's definition, and what pipeline/splat/spz.py
+    // writes), Spark shows them as stored; the PLY and cameras.json are RDF (COLMAP). A 180° turn about x maps one
+    // onto the other.
+    if (format === "spz") mesh.quaternion.set(1, 0, 0, 0);
     await mesh.initialized;
     scene.add(mesh);
     const display = cams ? cams.display : null;
@@ -104,7 +108,8 @@ export async function mount(container, opts) {
       toggle = waterToggle(container, (flag) => setWater(flag));
     }
 
-    const box = mesh.getBoundingBox(true);
+    mesh.updateMatrixWorld();
+    const box = mesh.getBoundingBox(true).clone().applyMatrix4(mesh.matrixWorld); // in the world (RDF) frame
     const pose = startPose(cams, box);
     const camera = new THREE.PerspectiveCamera(pose.fovY, width / height, pose.near, pose.far);
     camera.up.copy(pose.up);
