@@ -14,7 +14,8 @@ import { backgroundColour, installDisplay } from "./water.js";
 export const VERSION = "0.1.0";
 
 async function fetchBytes(url, headers) {
-  // credentials "omit": the key travels only in the Authorization header the caller gave us.
+  // credentials "omit": the key travels only in the Authorization header the caller gave us. "no-store": the
+  // browser's cache is keyed by URL, not by key, so a cached artifact could be shown to the next key signed in.
   const res = await fetch(url, { headers: headers || {}, credentials: "omit", cache: "no-store" });
   if (!res.ok) throw new Error(`could not load ${url}: HTTP ${res.status}`);
   return new Uint8Array(await res.arrayBuffer());
