@@ -33,6 +33,16 @@ export function cameraFrustums(cameras, size) {
   return lines;
 }
 
+/** Median distance from a camera to its nearest neighbour (frustums this size do not overlap); Infinity for one. */
+function medianSpacing(cameras) {
+  const step = Math.max(1, Math.floor(cameras.length / 400)); // O(n²): a few hundred cameras at most
+  const c = cameras.filter((_, i) => i % step === 0).map((x) => new THREE.Vector3(...x.position));
+  if (c.length < 2) return Infinity;
+  const nearest = c.map((p, i) => Math.min(...c.filter((_, j) => j !== i).map((q) => p.distanceTo(q))));
+  nearest.sort((a, b) => a - b);
+  return nearest[Math.floor(nearest.length / 2)];
+}
+
 /**
  * Where the viewer starts: on the first camera (by name) looking where it looked, at the median depth of the
  * Gaussians it saw, upright along the cameras' mean image-up; without cameras, in front of the bounding box.
@@ -70,6 +80,6 @@ export function startPose(cams, box) {
     fovY: c0.fov_y_deg,
     near: depth * 1e-3,
     far: Math.max(depth, spread, size) * 100,
-    markerSize: Math.max(Math.min(depth * 0.15, spread * 0.1), depth * 0.02),
+    markerSize: Math.max(Math.min(depth * 0.15, 0.6 * medianSpacing(list)), depth * 0.02),
   };
 }
