@@ -39,13 +39,19 @@ WATER = {"beta_D": [0.45, 0.15, 0.10], "beta_B": [0.40, 0.15, 0.12], "B_inf": [0
 playwright_api = pytest.importorskip("playwright.sync_api")
 pytestmark = pytest.mark.skipif(not Path(CHROMIUM).is_file(), reason="Debian's chromium is not installed")
 
-PAGE = """<!doctype html><html><body style="margin:0;background:#000">
-<div id="view" style="width:480px;height:360px"></div>
+PAGE = """<!doctype html><html><head><link rel="stylesheet" href="/test.css"></head><body>
+<div id="view"></div>
 <script src="/static/viewer/viewer.js"></script>
-<script>
-window.mountViewer = (opts) => DualphysViewer.mount(document.getElementById("view"), opts)
-  .then((h) => { window.viewer = h; return {splats: h.numSplats, cameras: h.numCameras}; });
-</script></body></html>"""
+<script src="/test.js"></script>
+</body></html>"""
+PAGE_JS = """window.mountViewer = (opts) => DualphysViewer.mount(document.getElementById("view"), opts)
+  .then((h) => { window.viewer = h; return {splats: h.numSplats, cameras: h.numCameras}; });"""
+PAGE_CSS = "body { margin: 0; background: #000 } #view { width: 480px; height: 360px }"
+# What the viewer needs from a page's Content-Security-Policy, and no more: Spark compiles WebAssembly, starts its
+# workers from blob:/data: URLs and fetches data: URLs; its few inline styles are set through the CSSOM, which
+# style-src 'self' allows (a style="" attribute in the markup it refuses, hence the test page's stylesheet).
+CSP = ("default-src 'self'; script-src 'self' 'wasm-unsafe-eval'; worker-src 'self' blob: data:; "
+       "connect-src 'self' blob: data:; img-src 'self' data: blob:; style-src 'self'")
 
 
 def _cameras(n: int = 5) -> list[View]:
@@ -93,6 +99,7 @@ class _Handler(BaseHTTPRequestHandler):
     def _send(self, code: int, body: bytes, ctype: str) -> None:
         self.send_response(code)
         self.send_header("Content-Type", ctype)
+        self.send_header("Content-Security-Policy", CSP)
         self.send_header("Content-Length", str(len(body)))
         self.end_headers()
         self.wfile.write(body)
@@ -102,6 +109,10 @@ class _Handler(BaseHTTPRequestHandler):
         self.seen.append((self.path, auth))
         if self.path == "/":
             return self._send(200, PAGE.encode(), "text/html")
+        if self.path == "/test.js":
+            return self._send(200, PAGE_JS.encode(), "text/javascript")
+        if self.path == "/test.css":
+            return self._send(200, PAGE_CSS.encode(), "text/css")
         if self.path.startswith("/static/viewer/"):
             p = BUNDLE.parent / self.path.rsplit("/", 1)[1]
             return self._send(200, p.read_bytes(), "text/javascript") if p.is_file() else self._send(404, b"", "")
@@ -177,15 +188,20 @@ def _not_background(img: np.ndarray) -> float:
     return float((np.abs(img - BACKGROUND).max(axis=2) > 24).mean())
 
 
-def _wait_drawn(page, timeout_s: float = 20.0) -> np.ndarray:
-    """The canvas once the splats are drawn (Spark sorts them in a worker, so the first frames can be empty)."""
-    img = _shot(page)
+def _wait_drawn(page, changed_from: np.ndarray | None = None, timeout_s: float = 20.0) -> np.ndarray:
+    """The canvas once the splats are drawn and the picture has settled: Spark sorts the splats and re-runs
+    modifiers (the water) in workers, so a frame can be empty or a step behind. Polls every 0.25 s until over 5 %
+    of the canvas is drawn, the frame differs from ``changed_from`` (after an action; by over 1 grey level on
+    average) and two successive frames agree."""
+    prev = _shot(page)
     for _ in range(int(timeout_s / 0.25)):
-        if _not_background(img) > 0.05:
-            break
         page.wait_for_timeout(250)
         img = _shot(page)
-    return img
+        changed = changed_from is None or float(np.abs(img - changed_from).mean()) > 1.0
+        if changed and _not_background(img) > 0.05 and float(np.abs(img - prev).mean()) < 0.2:
+            return img
+        prev = img
+    return prev
 
 
 @pytest.mark.timeout(120)
@@ -219,8 +235,7 @@ def test_viewer_renders_the_scene_with_and_without_water_and_follows_the_mouse(s
     # "With water": the job's medium at the viewer's distances
     assert page.evaluate("viewer.hasWater") and page.locator("#view .dualphys-viewer-water").is_visible()
     page.locator("#view .dualphys-viewer-water input").check()
-    page.wait_for_timeout(500)
-    wet = _shot(page)
+    wet = _wait_drawn(page, changed_from=first)
     small = wet.reshape(60, 6, 80, 6, 3).mean(axis=(1, 3))
     ref = _reference_render(0, 0.5, wet=True)
     corr = float(np.corrcoef(ref.ravel(), small.ravel())[0, 1])
@@ -229,8 +244,7 @@ def test_viewer_renders_the_scene_with_and_without_water_and_follows_the_mouse(s
     # its centre's distance, the reference each pixel at its blended depth); the dry reference is 64 / 40 / 37 off
     assert corr > 0.9 and diff.max() < 12, (corr, diff)
     page.evaluate("viewer.setWater(false)")
-    page.wait_for_timeout(500)
-    assert float(np.abs(_wait_drawn(page) - first).mean()) < 2  # back to the restored scene
+    assert float(np.abs(_wait_drawn(page, changed_from=wet) - first).mean()) < 2  # back to the restored scene
 
     box = page.locator("#view canvas").bounding_box()
     cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
@@ -238,16 +252,14 @@ def test_viewer_renders_the_scene_with_and_without_water_and_follows_the_mouse(s
     page.mouse.down()
     page.mouse.move(cx + 120, cy + 30, steps=8)
     page.mouse.up()
-    page.wait_for_timeout(500)
-    orbited = _wait_drawn(page)
+    orbited = _wait_drawn(page, changed_from=first)
     moved = float(np.abs(orbited - first).mean())
     assert moved > 8, f"orbiting changed the image by only {moved:.1f} grey levels"
     assert not np.allclose(page.evaluate("viewer.camera.position.toArray()"), pos)
 
     d0 = page.evaluate("viewer.camera.position.distanceTo(viewer.controls.target)")
     page.mouse.wheel(0, -400)
-    page.wait_for_timeout(500)
-    zoomed = _wait_drawn(page)
+    zoomed = _wait_drawn(page, changed_from=orbited)
     assert page.evaluate("viewer.camera.position.distanceTo(viewer.controls.target)") < 0.9 * d0
     assert float(np.abs(zoomed - orbited).mean()) > 5
     assert not errors
