@@ -55,7 +55,8 @@ function waterToggle(container, onChange) {
  * @param {HTMLElement} container
  * @param {{splatUrl: string, format?: 'ply'|'spz', headers?: object, camerasUrl?: string|null}} opts
  * @returns {Promise<{dispose(): void, camera: THREE.PerspectiveCamera, controls: OrbitControls,
- *   numSplats: number, numCameras: number, render(): void}>}
+ *   numSplats: number, numCameras: number, hasWater: boolean, setWater(on: boolean): boolean,
+ *   render(): void, frames: number}>}
  */
 export async function mount(container, opts) {
   const { splatUrl, format = "ply", headers = {}, camerasUrl = null } = opts || {};
@@ -67,6 +68,7 @@ export async function mount(container, opts) {
 
   let renderer = null;
   let frame = 0;
+  let render = () => {};
   let disposed = false;
   try {
     const [bytes, cams] = await Promise.all([
@@ -85,7 +87,19 @@ export async function mount(container, opts) {
     container.appendChild(renderer.domElement);
 
     const scene = new THREE.Scene();
-    scene.add(new SparkRenderer({ renderer }));
+    // Frames on demand, not a loop: without a GPU (software WebGL) every frame costs the CPU ~0.7 s for the demo's
+    // 24k Gaussians, and an idle tab would keep a core busy. Spark calls onDirty when its sort or an update of the
+    // splats (the water switch) finishes; the controls and the resize ask for the rest.
+    let pending = false;
+    const requestRender = () => {
+      if (pending || disposed) return;
+      pending = true;
+      frame = requestAnimationFrame(() => {
+        pending = false;
+        if (!disposed) render();
+      });
+    };
+    scene.add(new SparkRenderer({ renderer, onDirty: requestRender }));
     const mesh = new SplatMesh({ fileBytes: bytes, fileType: format });
     // SPZ stores RUB axes (x right, y up, z back; the format's definition, and what pipeline/splat/spz.py
     // writes), Spark shows them as stored; the PLY and cameras.json are RDF (COLMAP). A 180° turn about x maps one
@@ -101,6 +115,7 @@ export async function mount(container, opts) {
       withWater = Boolean(flag);
       setWaterColours(withWater);
       renderer.setClearColor(backgroundColour(display, withWater), 1);
+      requestRender();
       if (toggle) toggle.querySelector("input").checked = withWater;
       return withWater;
     };
@@ -130,13 +145,13 @@ export async function mount(container, opts) {
     controls.screenSpacePanning = true;
     controls.update();
 
-    const render = () => renderer.render(scene, camera);
-    const loop = () => {
-      if (disposed) return;
-      frame = requestAnimationFrame(loop);
-      render();
+    controls.addEventListener("change", requestRender);
+    let frames = 0;
+    render = () => {
+      frames += 1;
+      renderer.render(scene, camera);
     };
-    loop();
+    requestRender();
 
     const resize = new ResizeObserver(() => {
       const w = Math.max(container.clientWidth, 1);
@@ -144,6 +159,7 @@ export async function mount(container, opts) {
       renderer.setSize(w, h);
       camera.aspect = w / h;
       camera.updateProjectionMatrix();
+      requestRender();
     });
     resize.observe(container);
 
@@ -153,6 +169,9 @@ export async function mount(container, opts) {
       camera,
       controls,
       render,
+      get frames() {
+        return frames; // frames drawn so far (none while nothing changes)
+      },
       numCameras,
       hasWater: Boolean(setWaterColours),
       setWater,
