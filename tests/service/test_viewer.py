@@ -205,7 +205,7 @@ def _wait_drawn(page, changed_from: np.ndarray | None = None, timeout_s: float =
 
 
 @pytest.mark.timeout(120)
-def test_viewer_renders_the_scene_with_and_without_water_and_follows_the_mouse(server, browser):
+def test_viewer_renders_the_scene_with_and_without_water_and_orbits_zooms_pans(server, browser):
     url, seen, _ = server
     seen.clear()
     page = browser.new_page(viewport={"width": 480, "height": 360})
@@ -262,6 +262,15 @@ def test_viewer_renders_the_scene_with_and_without_water_and_follows_the_mouse(s
     zoomed = _wait_drawn(page, changed_from=orbited)
     assert page.evaluate("viewer.camera.position.distanceTo(viewer.controls.target)") < 0.9 * d0
     assert float(np.abs(zoomed - orbited).mean()) > 5
+
+    t0 = page.evaluate("viewer.controls.target.toArray()")
+    page.mouse.move(cx, cy)
+    page.mouse.down(button="right")
+    page.mouse.move(cx - 80, cy, steps=6)
+    page.mouse.up(button="right")
+    panned = _wait_drawn(page, changed_from=zoomed)
+    assert np.linalg.norm(np.subtract(page.evaluate("viewer.controls.target.toArray()"), t0)) > 0.05
+    assert float(np.abs(panned - zoomed).mean()) > 5
     assert not errors
     # frames on demand: nothing is drawn while nothing changes (a software-GL frame costs the CPU ~0.7 s)
     # (measured over 3 s in three runs: not one frame; a late sort can still land just after the picture settled)
