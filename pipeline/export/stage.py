@@ -17,6 +17,7 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     t0 = time.perf_counter()
     from pipeline.evaluate.rerender import training_views
+    from pipeline.export.cameras import export_cameras, viewer_display
     from pipeline.export.views import export_views
     from pipeline.splat.ply import export_ply
     from pipeline.splat.spz import export_spz
@@ -28,8 +29,12 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     data = export_ply(state["gaussians"], layout.ply)
     spz = export_spz(state["gaussians"], layout.spz)  # the same Gaussians, compressed (docs/SERVICE.md)
-    counts = export_views(state, training_views(job, state), layout.renders)
+    views = training_views(job, state)
+    counts = export_views(state, views, layout.renders)
+    n_cameras = export_cameras(views, state["gaussians"]["means"].detach().cpu().numpy(), layout.cameras,
+                               viewer_display(state))
     from pipeline.evaluate.report import write_report
 
     reports = write_report(job, out, export_s=time.perf_counter() - t0)
-    return {layout.ply.name: len(data), layout.spz.name: len(spz), **counts, "report": [p.name for p in reports]}
+    return {layout.ply.name: len(data), layout.spz.name: len(spz), layout.cameras.name: n_cameras, **counts,
+            "report": [p.name for p in reports]}

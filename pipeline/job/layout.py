@@ -166,6 +166,11 @@ class JobLayout:
         return self.output / "reconstruction.spz"
 
     @property
+    def cameras(self) -> Path:
+        """The training cameras in the PLY's frame, for the dashboard's 3D viewer (pipeline/export/cameras.py)."""
+        return self.output / "cameras.json"
+
+    @property
     def report_json(self) -> Path:
         return self.output / "report.json"
 

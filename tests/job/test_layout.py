@@ -20,9 +20,9 @@ LAYOUT_FILE = Path("pipeline/job/layout.py")
 # The job folder's file names (the list, and what JobLayout adds: asserted to stay in it below).
 FILE_NAMES = ("job.json", "ingest.json", "classify.json", "water.json", "latest.pt", "train.json", "selection.json",
               "recovery.json", "collapsed.pt", "evaluate.json", "reconstruction.ply", "reconstruction.spz",
-              "report.json", "report.html",
+              "cameras.json", "report.json", "report.html",
               "speed_vs_error.png", ".stages", ".artifacts.json", "manifest.json", "log.txt", "source.json",
-              "restore.json")
+              "restore.json", ".previews")
 # Folders whose names are ordinary words elsewhere ("train" the stage, "input" a report key): spelled as a path
 # (``x / "train"``, ``"train/..."``) they are the job folder's.
 FOLDER_NAMES = ("train", "output", "evaluate", "input", "upload", "true_camera", "renders", "confidence")
@@ -117,10 +117,10 @@ def test_job_layout_paths():
         "train_config": "train/config.json", "recovery": "train/recovery.json", "collapsed": "train/collapsed.pt",
         "evaluate": "evaluate.json", "evaluate_renders": "evaluate", "true_camera": "evaluate/true_camera",
         "output": "output", "ply": "output/reconstruction.ply", "spz": "output/reconstruction.spz",
-        "report_json": "output/report.json",
+        "cameras": "output/cameras.json", "report_json": "output/report.json",
         "report_html": "output/report.html", "curve_png": "output/speed_vs_error.png", "markers": ".stages",
         "renders": "output/renders", "restore_result": "restore.json", "restored": "output/restored",
-        "confidence": "output/confidence",
+        "confidence": "output/confidence", "previews": ".previews",
         "marker": ".stages/x.json", "manifest": "manifest.json", "log": "log.txt", "input": "input",
         "upload": "input/archive", "source_name": "source.json", "artifacts_cache": ".artifacts.json", "root": ""}
     assert JobLayout(Path("/data/jobs/j1")) == j and isinstance(j.root, Path)
