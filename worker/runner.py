@@ -99,10 +99,11 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
                 planned = _finish(m, "cancelled", None, "cancelled before " + stage)
                 ended = Outcome("cancelled")
             elif rec.status == "running":  # the previous attempt's worker died: keep that attempt in the record
+                last = _last_words(rt, m, stage)
                 rec.history.append(AttemptRecord(attempt=rec.attempts, started_at=rec.started_at,
-                                                 ended_at=m.updated_at, outcome="worker_lost", last=m.message))
+                                                 ended_at=m.updated_at, outcome="worker_lost", last=last))
                 log.warning("job %s: the worker running %s died (attempt %d, last: %s)", job_id, stage,
-                            rec.attempts, m.message or "-")
+                            rec.attempts, last or "-")
             if ended is None and rec.status == "running" and rec.attempts >= rt.settings.max_stage_attempts:
                 msg = f"the worker died {rec.attempts} times while running {stage}"
                 planned = _finish(m, "failed", JobError(stage=stage, code="worker_lost", message=msg), msg)
@@ -254,6 +255,21 @@ class ProgressReporter:
                 if m.run_id == self.run_id and m.state == "running":
                     m.progress, m.message, m.current_stage = max(m.progress, self.value), message, stage
                     self.rt.store.write(m)
+
+
+def _last_words(rt, m, stage: str) -> str:
+    """What a dead worker last said about ``stage``: the progress cache's message (pushed every
+    CACHE_PROGRESS_EVERY_S) when it is this run's and this stage's, else the manifest's (written every
+    MANIFEST_PROGRESS_EVERY_S, so it can be a step behind: a worker killed 1 s after the probe ended left 'probe:
+    chose dualphys' there while it was already training)."""
+    try:
+        live = rt.coord.read_progress(m.id)
+    except Exception as e:  # the cache is a nicety here; the manifest's message will do
+        log.warning("progress cache unavailable: %s", e)
+        live = None
+    if live and live["run_id"] == m.run_id and live["stage"] == stage and live["message"]:
+        return live["message"]
+    return m.message
 
 
 class CancelCheck:
