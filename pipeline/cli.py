@@ -19,10 +19,15 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline.cli_args import fail as _fail
 from pipeline.cli_args import positive as _positive
 
 log = logging.getLogger("dualphys")
+
+
+def _fail(command: str, message: str) -> int:
+    """``dualphys <command>: <message>`` on stderr; exit code 1."""
+    print(f"dualphys {command}: {message}", file=sys.stderr)
+    return 1
 
 
 def _prepare_runtime() -> None:
@@ -407,7 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_ablate)
 
-    from service.client.commands import add_client_commands
+    from service.client.cli import add_client_commands
 
     add_client_commands(sub)
     return p

@@ -1,11 +1,9 @@
-"""What every ``dualphys`` sub-command shares: the positive-integer argument type and the one-line failure
-(``dualphys <command>: <message>`` on stderr, exit 1). The pipeline's commands (pipeline/cli.py) and the client's
-(service/client/commands.py) both use them."""
+"""Argument types the ``dualphys`` sub-commands share: the pipeline's (pipeline/cli.py) and the client's
+(service/client/cli.py). The two command modules do not import each other."""
 
 from __future__ import annotations
 
 import argparse
-import sys
 
 
 def positive(text: str) -> int:
@@ -17,7 +15,3 @@ def positive(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return v
 
-
-def fail(command: str, message: str) -> int:
-    print(f"dualphys {command}: {message}", file=sys.stderr)
-    return 1

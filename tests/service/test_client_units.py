@@ -16,7 +16,7 @@ import pytest
 from svc_helpers import free_port
 
 from pipeline.cli import main
-from service.client.commands import KEY_ENV, SERVER_ENV
+from service.client.cli import KEY_ENV, SERVER_ENV
 from service.client.download import local_path, select
 from service.client.remote import Artifact, ClientError, ServiceClient
 from service.client.watch import wait_job

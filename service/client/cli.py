@@ -15,12 +15,17 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline.cli_args import fail as _fail
 from pipeline.cli_args import positive as _positive
 
 SERVER_ENV, KEY_ENV = "DUALPHYS_SERVER", "DUALPHYS_KEY"  # no Settings field is named server or key (tested)
 DEFAULT_SERVER = "http://127.0.0.1:8000"  # where `dualphys serve` listens by default
 JOB_EXIT = {"done": 0, "failed": 3, "cancelled": 4}
+
+
+def _fail(command: str, message: str) -> int:
+    """``dualphys <command>: <message>`` on stderr; exit code 1."""
+    print(f"dualphys {command}: {message}", file=sys.stderr)
+    return 1
 
 
 def _server(args: argparse.Namespace) -> str:
@@ -141,7 +146,8 @@ def cmd_submit(args: argparse.Namespace) -> int:
             return _client_error(args, e, job["id"])
 
 
-def cmd_status(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, job_id: str | None, body) -> int:
+    """Connect, run ``body(client)`` (returns the exit code) and turn a refused request into its message."""
     from service.client.remote import ClientError
 
     client = _connect(args)
@@ -149,36 +155,37 @@ def cmd_status(args: argparse.Namespace) -> int:
         return 1
     with client:
         try:
-            if args.wait:
-                return _wait(args, client, args.job)
-            job = client.job(args.job)
+            return body(client)
         except ClientError as e:
-            return _client_error(args, e, args.job)
-    print(json.dumps(job if args.full else _job_line(job)))
-    return 0
+            return _client_error(args, e, job_id)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    def body(client) -> int:
+        if args.wait:
+            return _wait(args, client, args.job)
+        job = client.job(args.job)
+        print(json.dumps(job if args.full else _job_line(job)))
+        return 0
+
+    return _run(args, args.job, body)
 
 
 def cmd_jobs(args: argparse.Namespace) -> int:
-    from service.client.remote import ClientError
-
-    client = _connect(args)
-    if client is None:
-        return 1
-    with client:
-        try:
-            jobs = client.jobs(status=args.status, limit=args.limit)
-        except ClientError as e:
-            return _client_error(args, e)
-    if args.json:
-        print(json.dumps([_job_line(j) for j in jobs]))
+    def body(client) -> int:
+        jobs = client.jobs(status=args.status, limit=args.limit)
+        if args.json:
+            print(json.dumps([_job_line(j) for j in jobs]))
+            return 0
+        print(f"{'id':<34} {'state':<10} {'progress':>8}  {'stage':<9} {'created (UTC)':<19}  source")
+        for j in jobs:
+            created = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(j["created_at"]))
+            source = (j.get("source") or {}).get("filename") or (j.get("source") or {}).get("kind") or ""
+            print(f"{j['id']:<34} {j['state']:<10} {j['progress']:7.1f}%  {j.get('stage') or '-':<9} "
+                  f"{created:<19}  {source}")
         return 0
-    print(f"{'id':<34} {'state':<10} {'progress':>8}  {'stage':<9} {'created (UTC)':<19}  source")
-    for j in jobs:
-        created = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(j["created_at"]))
-        source = (j.get("source") or {}).get("filename") or (j.get("source") or {}).get("kind") or ""
-        print(f"{j['id']:<34} {j['state']:<10} {j['progress']:7.1f}%  {j.get('stage') or '-':<9} {created:<19}  "
-              f"{source}")
-    return 0
+
+    return _run(args, None, body)
 
 
 def cmd_download(args: argparse.Namespace) -> int:
@@ -226,20 +233,14 @@ def cmd_download(args: argparse.Namespace) -> int:
 
 
 def cmd_cancel(args: argparse.Namespace) -> int:
-    from service.client.remote import ClientError
+    def body(client) -> int:
+        job = client.cancel(args.job)
+        if args.wait:
+            return _wait(args, client, args.job)
+        print(json.dumps(_job_line(job)))
+        return 0
 
-    client = _connect(args)
-    if client is None:
-        return 1
-    with client:
-        try:
-            job = client.cancel(args.job)
-            if args.wait:
-                return _wait(args, client, args.job)
-        except ClientError as e:
-            return _client_error(args, e, args.job)
-    print(json.dumps(_job_line(job)))
-    return 0
+    return _run(args, args.job, body)
 
 
 def _client_parent() -> argparse.ArgumentParser:
