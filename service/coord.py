@@ -135,9 +135,9 @@ class Coordinator:
         return bool(self.redis.exists(self.key("job", job_id, "run")))
 
     @contextmanager
-    def scan_lock(self, survey_id: str, ttl_s: float = 600.0) -> Iterator[bool]:
-        """Yields False when another scanner holds this survey's lock (the caller skips the scan)."""
-        lock = self.redis.lock(self.key("survey", survey_id, "scan"), timeout=ttl_s, blocking=False)
+    def _try_lock(self, name: str, ttl_s: float) -> Iterator[bool]:
+        """Yields whether this caller got the Redis lock ``name`` (never waits); releases it after, if held."""
+        lock = self.redis.lock(name, timeout=ttl_s, blocking=False)
         got = lock.acquire(blocking=False)
         try:
             yield got
@@ -148,20 +148,14 @@ class Coordinator:
                 except LockError:
                     pass
 
-    @contextmanager
-    def webhook_claim(self, delivery_id: str, ttl_s: float) -> Iterator[bool]:
+    def scan_lock(self, survey_id: str, ttl_s: float = 600.0):
+        """Yields False when another scanner holds this survey's lock (the caller skips the scan)."""
+        return self._try_lock(self.key("survey", survey_id, "scan"), ttl_s)
+
+    def webhook_claim(self, delivery_id: str, ttl_s: float):
         """Yields False when another task is sending this webhook delivery right now (a duplicated message):
         one attempt at a time per delivery. The TTL outlives the HTTP timeout, so a crashed sender frees it."""
-        lock = self.redis.lock(self.key("hook", delivery_id), timeout=ttl_s, blocking=False)
-        got = lock.acquire(blocking=False)
-        try:
-            yield got
-        finally:
-            if got:
-                try:
-                    lock.release()
-                except LockError:
-                    pass
+        return self._try_lock(self.key("hook", delivery_id), ttl_s)
 
     # ---- cancel
     def request_cancel(self, job_id: str) -> None:

@@ -16,11 +16,11 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pipeline.job.markers import atomic_write_text
 from pipeline.scene.records import View
 
 FORMAT = "dualphys-cameras/1"
@@ -55,21 +55,15 @@ def camera_record(view: View, means: np.ndarray | None = None) -> dict:
     }
 
 
-def viewer_display(state: dict[str, Any]) -> dict:
-    """``display`` for a training checkpoint ``state``: its colour space and its water as one homogeneous medium
-    (β_D the effective coefficient the report gives, the running mean over training views of eq. 5's w·β·(1 − γE)·T;
-    the network medium's per-pixel terms are left out)."""
-    from pipeline.train.model import model_from_state
-
-    model = model_from_state(state)
-    m, water = model.medium, None
-    if m is not None:
-        bd = state["medium"].get("beta_eff_mean")
-        if bd is None:
-            bd = m.w * m.beta_D * m.water_factor
-        water = {k: [float(x) for x in v.detach().flatten()] for k, v in
-                 (("beta_D", bd), ("beta_B", m.beta_B), ("B_inf", m.B_inf))}
-    return {"colour_space": model.colour_space, "water": water}
+def viewer_display(state: dict[str, Any], coefficients: dict | None) -> dict:
+    """``display`` for a training checkpoint ``state`` and the medium's ``coefficients`` as training reported them
+    (``MediumTerm.effective_coefficients``, the train result's ``medium``; None without a medium): the colour space
+    and the water as one homogeneous medium (β_D the effective coefficient, the running mean over training views of
+    eq. 5's w·β·(1 − γE)·T; the network medium's per-pixel terms are left out)."""
+    water = None
+    if coefficients:
+        water = {k: [float(x) for x in np.ravel(coefficients[k])] for k in ("beta_D", "beta_B", "B_inf")}
+    return {"colour_space": state["config"].get("colour_space", "srgb"), "water": water}
 
 
 def cameras_document(views: Sequence[View], means: np.ndarray | None = None, display: dict | None = None) -> dict:
@@ -96,5 +90,5 @@ def export_cameras(views: Sequence[View], means: np.ndarray | None, path: str | 
                    display: dict | None = None) -> int:
     """Write ``cameras.json`` to ``path``; returns the number of cameras."""
     doc = cameras_document(views, means, display)
-    Path(path).write_text(json.dumps(doc, indent=1))
+    atomic_write_text(path, json.dumps(doc, indent=1))  # a reader (the API) never sees half a file
     return doc["count"]

@@ -13,6 +13,7 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     backscatter/, depth/) of every registered view (training and held-out alike), at the resolution training
     used; then report.json and report.html (``pipeline.evaluate.report``), which read those files and the
     restore stage's."""
+    import json
     import time
 
     t0 = time.perf_counter()
@@ -32,7 +33,7 @@ def stage_export(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     views = training_views(job, state)
     counts = export_views(state, views, layout.renders)
     n_cameras = export_cameras(views, state["gaussians"]["means"].detach().cpu().numpy(), layout.cameras,
-                               viewer_display(state))
+                               viewer_display(state, json.loads(layout.train_result.read_text()).get("medium")))
     from pipeline.evaluate.report import write_report
 
     reports = write_report(job, out, export_s=time.perf_counter() - t0)

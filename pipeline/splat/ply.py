@@ -96,11 +96,17 @@ def export_ply(params: dict[str, Tensor], path: str | os.PathLike[str] | None = 
     ).encode("ascii")
     data = header + records.tobytes()
     if path is not None:
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
+        write_atomic(path, data)
     return data
+
+
+def write_atomic(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary name beside it, so a reader never sees half a file (the
+    PLY and SPZ writers)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
 
 
 def _parse_header(buf: bytes | memoryview) -> tuple[int, int, np.dtype]:

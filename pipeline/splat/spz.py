@@ -44,6 +44,7 @@ import torch
 from torch import Tensor
 
 from pipeline.splat.gaussians import check_gaussians
+from pipeline.splat.ply import write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -235,10 +236,7 @@ def export_spz(
     )
     data = gzip.compress(body, compresslevel=6, mtime=0)  # the reference's level; mtime 0: same Gaussians, same bytes
     if path is not None:
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
+        write_atomic(path, data)
     return data
 
 

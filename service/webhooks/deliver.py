@@ -53,6 +53,17 @@ def headers_for(d: WebhookDelivery, secret: str, attempt: int) -> dict[str, str]
     }
 
 
+def _read_pending(rt, job_id: str, delivery_id: str):
+    """(manifest, its pending delivery record), or (why not, None) when the job is gone or the delivery is no
+    longer pending (delivered or given up)."""
+    try:
+        m = rt.store.read(job_id)
+    except JobNotFound:
+        return "job deleted", None
+    rec = _pending(m, delivery_id)
+    return (m, rec) if rec is not None else ("delivery not pending (delivered or given up)", None)
+
+
 def deliver(rt, job_id: str, delivery_id: str, client: httpx.Client | None = None) -> AttemptOutcome:
     """Make the next attempt of delivery ``delivery_id`` of job ``job_id`` and record it.
 
@@ -61,23 +72,15 @@ def deliver(rt, job_id: str, delivery_id: str, client: httpx.Client | None = Non
     with rt.coord.webhook_claim(delivery_id, settings.webhook_timeout_s * 2 + 30) as got:
         if not got:
             return AttemptOutcome("dropped", detail="another attempt of this delivery is under way")
-        try:
-            first = rt.store.read(job_id)
-        except JobNotFound:
-            return AttemptOutcome("dropped", detail="job deleted")
-        d = _pending(first, delivery_id)
+        first, d = _read_pending(rt, job_id, delivery_id)
         if d is None:
-            return AttemptOutcome("dropped", detail="delivery not pending (already delivered or given up)")
+            return AttemptOutcome("dropped", detail=f"{first} (before the attempt)")
         attempt = d.attempts + 1
         code, error, final = _attempt(settings, first.owner, d, attempt, client)
-        with rt.coord.manifest_mutex(job_id):
-            try:
-                m = rt.store.read(job_id)
-            except JobNotFound:
-                return AttemptOutcome("dropped", detail="job deleted during the attempt")
-            rec = _pending(m, delivery_id)
+        with rt.coord.manifest_mutex(job_id):  # read again: the manifest may have changed during the attempt
+            m, rec = _read_pending(rt, job_id, delivery_id)
             if rec is None:
-                return AttemptOutcome("dropped", detail="delivery no longer pending")
+                return AttemptOutcome("dropped", detail=f"{m} (after the attempt)")
             now = time.time()
             rec.attempts, rec.last_attempt_at, rec.last_status_code, rec.last_error = attempt, now, code, error
             if error is None:

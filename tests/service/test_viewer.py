@@ -24,6 +24,7 @@ from pipeline.export.cameras import export_cameras
 from pipeline.scene.records import Camera, View, ray_length_factor
 from pipeline.splat.gaussians import make_gaussians, rgb_to_sh0
 from pipeline.splat.ply import export_ply
+from pipeline.splat.spz import export_spz
 
 CHROMIUM = "/usr/bin/chromium"
 BUNDLE = Path(__file__).resolve().parents[2] / "service" / "web" / "static" / "viewer" / "viewer.js"
@@ -204,16 +205,24 @@ def _wait_drawn(page, changed_from: np.ndarray | None = None, timeout_s: float =
     return prev
 
 
+def _mount(browser, url: str, splat: str, cameras: str | None, key: str = KEY, errors: list | None = None):
+    """A new page on the test server that mounts the viewer on ``/files/<splat>`` (format from its suffix) with
+    ``Authorization: Bearer <key>``; returns (page, what mount resolved to, or its error as a string)."""
+    page = browser.new_page(viewport={"width": 480, "height": 360})
+    if errors is not None:
+        page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url + "/")
+    opts = {"splatUrl": f"/files/{splat}", "format": splat.rsplit(".", 1)[1],
+            "headers": {"Authorization": f"Bearer {key}"}, "camerasUrl": f"/files/{cameras}" if cameras else None}
+    return page, page.evaluate("o => mountViewer(o).then(r => r, e => String(e))", opts)
+
+
 @pytest.mark.timeout(120)
 def test_viewer_renders_the_scene_with_and_without_water_and_orbits_zooms_pans(server, browser):
     url, seen, _ = server
     seen.clear()
-    page = browser.new_page(viewport={"width": 480, "height": 360})
     errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(url + "/")
-    info = page.evaluate("""k => mountViewer({splatUrl: '/files/scene.ply', format: 'ply',
-        headers: {Authorization: 'Bearer ' + k}, camerasUrl: '/files/cameras.json'})""", KEY)
+    page, info = _mount(browser, url, "scene.ply", "cameras.json", errors=errors)
     assert info == {"splats": 6000, "cameras": 5}
     first = _wait_drawn(page)
     cover = _not_background(first)
@@ -289,10 +298,7 @@ def test_viewer_renders_the_scene_with_and_without_water_and_orbits_zooms_pans(s
 @pytest.mark.timeout(60)
 def test_linear_light_colours_are_encoded_for_the_screen(server, browser):
     url, _, _ = server
-    page = browser.new_page(viewport={"width": 480, "height": 360})
-    page.goto(url + "/")
-    page.evaluate("""k => mountViewer({splatUrl: '/files/scene.ply', format: 'ply',
-        headers: {Authorization: 'Bearer ' + k}, camerasUrl: '/files/cameras_linear.json'})""", KEY)
+    page, _ = _mount(browser, url, "scene.ply", "cameras_linear.json")
     shown = _wait_drawn(page).reshape(60, 6, 80, 6, 3).mean(axis=(1, 3))
     assert not page.evaluate("viewer.hasWater") and page.locator("#view .dualphys-viewer-water").count() == 0
     ref = _reference_render(0, 0.5)  # [60, 80, 3] the colours as they are (srgb), on BACKGROUND
@@ -308,18 +314,13 @@ def test_linear_light_colours_are_encoded_for_the_screen(server, browser):
 
 @pytest.mark.timeout(60)
 def test_spz_shows_the_same_scene_as_the_ply(server, browser):
-    """Runs once ``pipeline.splat.spz`` (issue 15's compact export, another branch) is in the tree."""
-    spz = pytest.importorskip("pipeline.splat.spz")
     url, _, files = server
-    spz.export_spz({k: v.detach() for k, v in _scene().items()}, files / "scene.spz")
-    page = browser.new_page(viewport={"width": 480, "height": 360})
-    page.goto(url + "/")
-    info = page.evaluate("""k => mountViewer({splatUrl: '/files/scene.spz', format: 'spz',
-        headers: {Authorization: 'Bearer ' + k}, camerasUrl: '/files/cameras.json'})""", KEY)
+    export_spz({k: v.detach() for k, v in _scene().items()}, files / "scene.spz")
+    page, info = _mount(browser, url, "scene.spz", "cameras.json")
     assert info == {"splats": 6000, "cameras": 5}
     small = _wait_drawn(page).reshape(60, 6, 80, 6, 3).mean(axis=(1, 3))
     ref = _reference_render(0, 0.5)
-    # measured with that branch's writer: corr 0.96 as the PLY's, 0.05 grey levels from the PLY's frame (the
+    # measured: corr 0.96 as the PLY's, 0.05 grey levels from the PLY's frame (the
     # SPZ is 10x smaller: 40 KB against 408 KB at SH degree 0); without the RUB -> RDF turn the corr was -0.09
     assert float(np.corrcoef(ref.ravel(), small.ravel())[0, 1]) > 0.85
     assert float(np.abs(ref - small).mean()) < 15
@@ -329,10 +330,7 @@ def test_spz_shows_the_same_scene_as_the_ply(server, browser):
 @pytest.mark.timeout(60)
 def test_viewer_says_why_when_the_key_is_wrong(server, browser):
     url, _, _ = server
-    page = browser.new_page(viewport={"width": 480, "height": 360})
-    page.goto(url + "/")
-    err = page.evaluate("""() => mountViewer({splatUrl: '/files/scene.ply', format: 'ply',
-        headers: {Authorization: 'Bearer wrong'}, camerasUrl: null}).then(() => 'mounted', e => String(e))""")
+    page, err = _mount(browser, url, "scene.ply", None, key="wrong")
     assert "HTTP 401" in err
     assert page.locator("#view").get_attribute("data-viewer-state") == "error"
     assert "could not be shown" in page.locator("#view .dualphys-viewer-message").inner_text()
