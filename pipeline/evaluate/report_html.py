@@ -71,15 +71,19 @@ def _restored_photos(r: dict, pics: Pictures) -> str:
     size = {f"{v['width']}x{v['height']}" for v in views if "width" in v}
     surface = [v["surface"] for v in views if v.get("surface") is not None]
     capped = [v["capped"] for v in views if v.get("capped") is not None]
+    extended = [v["extended"] for v in views if v.get("extended") is not None]
     html += (f"<p>{rs['restored']} photos restored at their own resolution ({escape(', '.join(sorted(size)))}) "
              f"and lens geometry into <code>restored/</code>: each pixel is the photo's own (I − B) / A, with the "
              f"water the model learned at that pixel's range from the reconstruction, where the water lets "
              f"enough light through, and leans on the model's reconstruction of that spot where it does not; no "
              f"channel is amplified more than {fmt(rs['max_gain'], 1)} times (the confidence map is the photo's "
              f"share). "
-             + (f"Restored surface: {fmt(100 * min(surface), 0)}–{fmt(100 * max(surface), 0)} % of each photo "
-                f"(the rest, open water or seabed the model does not hold, is left as photographed and has "
-                f"confidence 0). " if surface else "")
+             + (f"Restored surface: {fmt(100 * min(surface), 0)}–{fmt(100 * max(surface), 0)} % of each photo. "
+                + (f"Seabed next to it that the model does not hold: up to {fmt(100 * max(extended), 0)} % of a "
+                   f"photo, de-watered from the photo alone at the depth carried on from the surface (confidence "
+                   f"0, marked in the surface mask). " if extended and max(extended) > 0 else "")
+                + "The rest (open water, seabed too far to tell from it) is left as photographed and has "
+                  "confidence 0. " if surface else "")
              + (f"Pixels at the gain cap: up to {fmt(100 * max(capped), 1)} %. " if capped else "")
              + f"{fmt(rs['seconds'], 1)} s in all.</p>")
     if rs.get("not_restored"):

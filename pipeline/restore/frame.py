@@ -4,6 +4,13 @@ Per band of ``band_rows`` photo rows (plus a halo of :func:`~pipeline.restore.gu
 lens map → sample the render's filled depth and alpha → guided filter on the photo's luminance → surface mask
 (sampled alpha ≥ 0.5, inside the render camera, z > 0) → range r = z·√(1 + xn² + yn²) → dewater. Bands start at
 multiples of the filter's block size, so the result equals a whole-frame run up to float rounding.
+
+Seabed next to the reconstruction that no training view covered (``unseen="extend"``, the default): the render's
+depth, filled outwards from the surface, is carried on, and the photo alone is de-watered there (no model prior:
+the model holds nothing of it) with the gain cap, confidence 0, blended into the photo as taken with the weight
+:func:`extension_weight` (by distance from the reconstructed surface and by how much light the water lets through
+at that range). Beyond that reach, and where the water hides the bottom (open water), the pixel is left as taken.
+docs/DECISIONS.md, "Seabed the model does not hold".
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ from pipeline.scene.records import LensCamera
 logger = logging.getLogger(__name__)
 
 CALIBRATION_BANDS = 6  # row bands of a photo that FrameRestorer.calibrate measures the prior's weight on
+UNSEEN = ("extend", "keep")
 
 
 @dataclass(frozen=True)
@@ -50,6 +58,23 @@ class RestoreOptions:
     eps: float = DEFAULT_EPS
     band_rows: int = 256
     lens_tol: float = DEFAULT_TOL
+    # Pixels with no reconstructed surface: "extend" de-waters the photo alone at the depth carried on from the
+    # nearby surface (within ``reach`` x the render's long side, fading over its second half, and fading out
+    # where the mean transmission at that range falls from 2 x ``min_transmission`` to ``min_transmission``);
+    # "keep" leaves them as taken.
+    # A pixel whose photo lies within ``water_margin`` (every channel, physics space) of the water's own colour
+    # B∞ is open water as far as the photo can tell, and is left as taken (fading in up to 2 x the margin).
+    unseen: str = "extend"
+    reach: float = 0.25
+    min_transmission: float = 0.15
+    water_margin: float = 0.03
+
+    def __post_init__(self) -> None:
+        if self.unseen not in UNSEEN:
+            raise ValueError(f"unseen must be one of {UNSEEN}, got {self.unseen!r}")
+        if not (self.reach >= 0 and 0 < self.min_transmission < 0.5 and self.water_margin > 0):
+            raise ValueError(f"reach must be >= 0, min_transmission in (0, 0.5) and water_margin > 0, got "
+                             f"{self.reach}, {self.min_transmission}, {self.water_margin}")
 
 
 @dataclass
@@ -59,8 +84,10 @@ class FrameResult:
     J: np.ndarray | None = None  # [H, W, 3] uint8 / uint16
     confidence: np.ndarray | None = None  # [H, W] float32 in [0, 1]
     surface: np.ndarray | None = None  # [H, W] bool
+    extended: np.ndarray | None = None  # [H, W] float32 in [0, 1]: weight of the photo-only restoration off the surface
     clipped: int = 0  # surface pixels with a channel clipped to [0, 1]
     surface_pixels: int = 0
+    extended_pixels: float = 0.0  # sum of the extension's weights (pixel equivalents)
     lam2: list[float] | None = None  # the prior's weight per channel (FrameRestorer.calibrate), None: none
     seconds: float = 0.0
     paths: dict[str, Path] = field(default_factory=dict)
@@ -81,7 +108,8 @@ class FrameRestorer:
         alpha = np.nan_to_num(np.asarray(view.alpha, np.float64), nan=0.0)
         ok = (alpha >= 0.5) & (depth > 0)
         z = fill_invalid(depth[..., None], ok)[..., 0]
-        self.maps = np.ascontiguousarray(np.stack([z, np.where(ok, alpha, 0.0)], -1), np.float32)  # [h, w, 2]
+        near = reach_weight(ok, options.reach * max(ok.shape)) if options.unseen == "extend" else np.zeros_like(z)
+        self.maps = np.ascontiguousarray(np.stack([z, np.where(ok, alpha, 0.0), near], -1), np.float32)  # [h, w, 3]
         m = view.medium
         self.kmaps = None if m.constant else np.ascontiguousarray(np.concatenate(
             [np.broadcast_to(m.k_A, (*z.shape, 3)), np.broadcast_to(m.k_B, (*z.shape, 3))], -1), np.float32)
@@ -115,7 +143,7 @@ class FrameRestorer:
         m = self.view.medium
         for e0, y0, y1, e1 in self.calibration_bands():
             rows = rows_of(e0, e1)
-            scale, r, surface, k_A, k_B, prior = self._geometry(rows, e0, y0, y1)
+            scale, r, surface, k_A, k_B, prior, _ = self._geometry(rows, e0, y0, y1)
             x = rows[y0 - e0:y1 - e0].astype(np.float64) * scale
             if self.opt.space == "linear":
                 x = srgb_to_linear(np.clip(x, 0, 1))
@@ -136,7 +164,7 @@ class FrameRestorer:
     def _geometry(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
         """What the physics needs of rows [y0, y1) besides the photo (``rows``: its rows [e0, e0 + len(rows))):
         (the scale of the stored values, range r [n, W] float32, surface [n, W] bool, k_A, k_B, the prior
-        [n, W, 3] or None)."""
+        [n, W, 3] or None, the reach weight [n, W] of pixels off the surface)."""
         from pipeline.restore._kernels import luminance
 
         e1 = e0 + rows.shape[0]
@@ -157,17 +185,33 @@ class FrameRestorer:
             k, _ = sample_maps(self.kmaps, xc, yc, self.view.camera)
             k_A, k_B = k[..., :3], k[..., 3:]
         prior = None if self.jmap is None else sample_maps(self.jmap, xc, yc, self.view.camera)[0]
-        return scale, r, surface, k_A, k_B, prior
+        near = np.where(surface | (z <= 0), 0.0, vals[c, :, 2]).astype(np.float32)
+        return scale, r, surface, k_A, k_B, prior, near
 
     def band(self, rows: np.ndarray, e0: int, y0: int, y1: int, out_max: int = 255
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """Restore rows [y0, y1) given the photo's rows [e0, e0 + len(rows)) (uint8/uint16/float [m, W, 3]).
-        Returns (J [n, W, 3] uint8/uint16, confidence [n, W] float32, surface [n, W] bool, clipped count)."""
-        scale, r, surface, k_A, k_B, prior = self._geometry(rows, e0, y0, y1)
-        J, conf, clipped = dewater(rows[y0 - e0:y1 - e0], r, surface, k_A, k_B, self.view.medium.B_inf,
-                                   max_gain=self.opt.max_gain, space=self.opt.space, out_max=out_max, scale=scale,
-                                   prior=prior, lam2=self.lam2)
-        return J, conf, surface, clipped
+        Returns (J [n, W, 3] uint8/uint16, confidence [n, W] float32, surface [n, W] bool, extension weight
+        [n, W] float32, clipped count)."""
+        scale, r, surface, k_A, k_B, prior, near = self._geometry(rows, e0, y0, y1)
+        photo = rows[y0 - e0:y1 - e0]
+        m = self.view.medium
+        J, conf, clipped = dewater(photo, r, surface, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
+                                   space=self.opt.space, out_max=out_max, scale=scale, prior=prior, lam2=self.lam2)
+        w = near
+        if w.any():
+            x = photo.astype(np.float32) * np.float32(scale)
+            if self.opt.space == "linear":
+                x = srgb_to_linear(np.clip(x, 0, 1))
+            w = extension_weight(near, r, k_A, self.opt.min_transmission) * water_fade(
+                x, m.B_inf, self.opt.water_margin)
+            off = w > 0
+            if off.any():  # the photo alone, at the carried-on depth, blended into the photo as taken
+                Jx, _, _ = dewater(photo, r, off, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
+                                   space=self.opt.space, out_max=out_max, scale=scale)
+                mix = w[..., None] * Jx.astype(np.float32) + (1 - w[..., None]) * J.astype(np.float32)
+                J = np.where(off[..., None], np.rint(mix), J).astype(J.dtype)
+        return J, conf, surface, w, clipped
 
 
 def restore_array(photo: np.ndarray, lens: LensCamera, view: RenderedView,
@@ -181,12 +225,14 @@ def restore_array(photo: np.ndarray, lens: LensCamera, view: RenderedView,
     fr = FrameRestorer(lens, view, options)
     fr.calibrate(lambda e0, e1: photo[e0:e1])
     res = FrameResult(J=np.empty((H, W, 3), np.uint8 if out_max == 255 else np.uint16),
-                      confidence=np.empty((H, W), np.float32), surface=np.empty((H, W), bool))
+                      confidence=np.empty((H, W), np.float32), surface=np.empty((H, W), bool),
+                      extended=np.empty((H, W), np.float32))
     for e0, y0, y1, e1 in fr.bands():
-        J, conf, surf, clipped = fr.band(photo[e0:e1], e0, y0, y1, out_max)
-        res.J[y0:y1], res.confidence[y0:y1], res.surface[y0:y1] = J, conf, surf
+        J, conf, surf, ext, clipped = fr.band(photo[e0:e1], e0, y0, y1, out_max)
+        res.J[y0:y1], res.confidence[y0:y1], res.surface[y0:y1], res.extended[y0:y1] = J, conf, surf, ext
         res.clipped += clipped
     res.surface_pixels = int(res.surface.sum())
+    res.extended_pixels = float(res.extended.sum())
     res.seconds = time.perf_counter() - t
     res.lam2 = None if fr.lam2 is None else [float(x) for x in fr.lam2]
     return res
@@ -197,8 +243,8 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
                  confidence_bits: int = 8, confidence_dir: Path | None = None) -> FrameResult:
     """Restore the image file ``src`` band by band into ``out_dir``: the restored image (same name and format,
     metadata kept; :func:`~pipeline.restore.files.restored_path`), ``<stem>_confidence.png`` (8 or 16 bit, 0..max
-    ↔ confidence 0..1) and ``<stem>_surface.png`` (8 bit, 255 = surface); with ``confidence_dir``, those two
-    there as ``<stem>.png`` and ``<stem>_surface.png`` (a job's layout). Returns counts, time and paths."""
+    ↔ confidence 0..1) and ``<stem>_surface.png`` (8 bit, :func:`surface_code`); with ``confidence_dir``, those
+    two there as ``<stem>.png`` and ``<stem>_surface.png`` (a job's layout). Returns counts, time and paths."""
     t = time.perf_counter()
     src, out_dir = Path(src), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -233,12 +279,13 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
     res = FrameResult(paths=paths)
     try:
         for e0, y0, y1, e1 in fr.bands():
-            J, conf, surf, clipped = fr.band(reader.rows(e0, e1), e0, y0, y1, 65535 if sixteen else 255)
+            J, conf, surf, ext, clipped = fr.band(reader.rows(e0, e1), e0, y0, y1, 65535 if sixteen else 255)
             writers["J"].write(J)
             writers["confidence"].write((conf * c_max + 0.5).astype(np.uint16 if c_max == 65535 else np.uint8))
-            writers["surface"].write(surf.astype(np.uint8) * 255)
+            writers["surface"].write(surface_code(surf, ext))
             res.clipped += clipped
             res.surface_pixels += int(surf.sum())
+            res.extended_pixels += float(ext.sum())
     finally:
         reader.close()
         for w in writers.values():
@@ -248,3 +295,54 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
     logger.info("restored %s: %.2f s, %d surface pixels, %d clipped", src.name, res.seconds, res.surface_pixels,
                 res.clipped)
     return res
+
+
+def reach_weight(ok: np.ndarray, reach_px: float) -> np.ndarray:
+    """[h, w] float32: 1 on and near the reconstructed surface ``ok`` [h, w] (chessboard distance ≤ reach/2),
+    falling linearly to 0 at ``reach_px`` render pixels; 0 everywhere when nothing is reconstructed."""
+    ok = np.asarray(ok, bool)
+    d = np.full(ok.shape, np.inf)
+    if not ok.any() or reach_px <= 0:
+        return np.where(ok, 1.0, 0.0).astype(np.float32)
+    steps = int(np.ceil(reach_px))
+    grown = ok.copy()
+    d[ok] = 0
+    for k in range(1, steps + 1):  # one 3x3 dilation per pixel of distance; the maps are training-sized
+        g = grown.copy()
+        g[1:] |= grown[:-1]
+        g[:-1] |= grown[1:]
+        g[:, 1:] |= g[:, :-1].copy()
+        g[:, :-1] |= g[:, 1:].copy()
+        d[g & ~grown] = k
+        if g.all():
+            break
+        grown = g
+    return np.clip(2.0 * (1.0 - d / reach_px), 0.0, 1.0).astype(np.float32)
+
+
+def extension_weight(near: np.ndarray, r: np.ndarray, k_A: np.ndarray, min_transmission: float) -> np.ndarray:
+    """The weight [n, W] float32 of the photo-only restoration off the surface: the reach weight ``near`` times
+    a fade on the mean transmission A = exp(−k_A·r) over the channels at the carried-on range ``r``: 1 from
+    2 x ``min_transmission`` up, 0 at ``min_transmission`` and below (there the water hides the bottom: open
+    water, or seabed too far to tell from it)."""
+    k = np.nan_to_num(np.asarray(k_A, np.float32), nan=0.0)
+    k = k.reshape(1, 1, 3) if k.ndim == 1 else k
+    a = np.exp(-np.clip(k * np.asarray(r, np.float32)[..., None], 0, 80)).mean(-1)
+    fade = np.clip(a / min_transmission - 1.0, 0.0, 1.0)
+    return (np.asarray(near, np.float32) * fade).astype(np.float32)
+
+
+def water_fade(x: np.ndarray, B_inf: np.ndarray, margin: float) -> np.ndarray:
+    """[n, W] float32: 0 where the photo ``x`` [n, W, 3] (physics space) is within ``margin`` of the water's colour
+    ``B_inf`` in every channel (open water as far as the photo can tell), rising to 1 at 2 x ``margin``. Where it
+    is 0 the pixel is left as taken, and rightly so: a seabed whose colour matches the water's looks the same
+    through any amount of it (I − J = (1 − A)(B∞ − J) ≈ 0)."""
+    d = np.abs(np.asarray(x, np.float32) - np.asarray(B_inf, np.float32).reshape(1, 1, 3)).max(-1)
+    return np.clip(d / margin - 1.0, 0.0, 1.0).astype(np.float32)
+
+
+def surface_code(surface: np.ndarray, extended: np.ndarray) -> np.ndarray:
+    """The 8-bit surface mask: 255 on the reconstructed surface, round(127 x weight) where the seabed was carried
+    on (at least 1 wherever the weight is above 0), 0 where the photo is left as taken."""
+    ext = np.where(extended > 0, np.maximum(np.rint(127 * extended), 1), 0)
+    return np.where(surface, 255, ext).astype(np.uint8)

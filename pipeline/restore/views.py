@@ -78,5 +78,6 @@ def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: Len
                        tiff16=fmt == "tiff16", confidence_dir=confidence_dir)
     n = lens.width * lens.height
     return {"file": res.paths["J"].name, "width": lens.width, "height": lens.height,
-            "surface": round(res.surface_pixels / n, 5), "clipped": round(res.clipped / n, 5),
+            "surface": round(res.surface_pixels / n, 5), "extended": round(res.extended_pixels / n, 5),
+            "clipped": round(res.clipped / n, 5),
             "camera": lens.model, "prior_weight": res.lam2}

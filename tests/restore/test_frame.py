@@ -1,5 +1,7 @@
 """A whole frame: the synthetic round trip, bands against one whole-frame band, files with their metadata."""
 
+import dataclasses
+
 import numpy as np
 import OpenImageIO as oiio
 import pytest
@@ -30,7 +32,32 @@ def test_round_trip_recovers_clean_image(frame):
     assert _psnr(I, J, m) < 20
     assert (res.surface & ~surf).mean() < 0.003  # surface beyond the truth: only along the open-water edge
     off = ~res.surface
-    assert (res.J[off] == photo[off]).all() and (res.confidence[off] == 0).all()
+    assert (res.confidence[off] == 0).all()
+    kept = off & (res.extended == 0)
+    assert (res.J[kept] == photo[kept]).all()
+    # off the render's surface but carried on: the lens corners outside the render camera (seabed), never the
+    # open water (its photo is the water's own colour); measured 32 % of the off-surface pixels
+    ext = res.extended > 0
+    assert 0.2 < ext[off].mean() < 0.5 and not (ext & ~surf).any()
+    assert _psnr(res.J / 255, J, ext & surf) > _psnr(I, J, ext & surf) + 4
+
+
+def test_unseen_seabed_is_carried_on_not_left_green(frame):
+    """A hole in the reconstruction (seabed no training view saw): the photo alone is de-watered there at the
+    depth carried on from around it, confidence 0, marked in ``extended``; ``unseen="keep"`` leaves it."""
+    fr, I, J, surf, rv = frame
+    photo = (I * 255 + 0.5).astype(np.uint8)
+    alpha = rv.alpha.copy()
+    alpha[30:50, 50:75] = 0  # a 20x25 render-pixel hole (160x200 photo pixels) in the seabed
+    holed = dataclasses.replace(rv, alpha=alpha)
+    res = restore_array(photo, fr.lens, holed)
+    hole = ~res.surface & surf & restore_array(photo, fr.lens, rv).surface  # only the pixels the hole took
+    assert hole.sum() > 30_000
+    assert res.extended[hole].mean() > 0.95 and (res.confidence[hole] == 0).all()
+    got, was = _psnr(res.J / 255, J, hole), _psnr(I, J, hole)
+    assert got > was + 5, (got, was)  # measured 24.0 against 18.0 dB (the depth is carried on flat, no prior)
+    keep = restore_array(photo, fr.lens, holed, RestoreOptions(unseen="keep"))
+    assert (keep.J[hole] == photo[hole]).all() and (keep.extended == 0).all()
 
 
 def test_bands_equal_one_band(frame):
