@@ -3,7 +3,9 @@
 Every candidate file is decoded (by content, not name). Readable images land in ``images/`` under a flat,
 safe name (sub-folders become ``a__b__name``); JPEG/PNG files already in display orientation are copied
 byte for byte, anything else (rotated by EXIF, TIFF, EXR, WebP, misnamed files) is written as PNG in display
-orientation. Unreadable files are skipped and listed with the reason; non-image files are ignored and listed.
+orientation. Video files (:mod:`pipeline.ingest.video`) give their keyframes, written as
+``<video>_<frame index>.jpg``, and an entry in ``videos``. Unreadable files (and videos that give no frame) are
+skipped and listed with the reason; non-image files are ignored and listed.
 Fewer than ``min_images`` usable images is an :class:`IngestError` (the caller maps it to a 4xx / exit 1).
 """
 
@@ -20,12 +22,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.ingest.archive import ArchiveLimits, extract_archive
+from pipeline.ingest.video import VideoConfig, VideoError, extract_keyframes, is_video
 from pipeline.job.layout import JobLayout
 
 log = logging.getLogger(__name__)
 
 NON_IMAGE_SUFFIXES = frozenset({".txt", ".md", ".csv", ".json", ".xml", ".yaml", ".yml", ".log", ".pdf", ".doc",
-                                ".docx", ".html", ".py", ".sh", ".db", ".ini", ".cfg", ".mp4", ".mov", ".avi"})
+                                ".docx", ".html", ".py", ".sh", ".db", ".ini", ".cfg"})
 
 
 class IngestError(ValueError):
@@ -40,6 +43,7 @@ class IngestError(ValueError):
 class IngestConfig:
     min_images: int = 3  # fewer usable images than this cannot make a reconstruction
     limits: ArchiveLimits = field(default_factory=ArchiveLimits)
+    video: VideoConfig = field(default_factory=VideoConfig)  # keyframes from video files
 
 
 @dataclass
@@ -48,6 +52,7 @@ class IngestResult:
     skipped: list[dict]  # {"file", "reason"}: looked like images but could not be decoded
     ignored: list[dict]  # {"file", "reason"}: not images (notes, hidden files ...)
     source: str
+    videos: list[dict] = field(default_factory=list)  # per video file: pipeline.ingest.video.VideoReport
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -106,10 +111,20 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
 
     written: dict[str, str] = {}
     skipped: list[dict] = []
+    videos: list[dict] = []
     for path in _candidates(root):
         rel = path.relative_to(root)
         if rel.name.startswith(".") or path.suffix.lower() in NON_IMAGE_SUFFIXES:
             ignored.append({"file": str(rel), "reason": "not an image file"})
+            continue
+        if is_video(path):
+            try:
+                report = extract_keyframes(path, str(rel), images_dir, Path(safe_name(rel)).stem, written, cfg.video)
+            except VideoError as e:
+                skipped.append({"file": str(rel), "reason": str(e)})
+                videos.append({"file": str(rel), "error": str(e), "code": e.code})
+                continue
+            videos.append(report.to_json())
             continue
         try:
             px = read_pixels(path)  # full decode: catches truncated and corrupt files
@@ -129,14 +144,15 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
         written[name] = str(rel)
     if unpacked.exists():
         shutil.rmtree(unpacked)
-    result = IngestResult(sorted(written), skipped, ignored, shown_source(source, job_dir))
+    result = IngestResult(sorted(written), skipped, ignored, shown_source(source, job_dir), videos)
     if len(written) < cfg.min_images:
         why = f"{len(written)} usable image(s) found; at least {cfg.min_images} are needed"
         if skipped:
             why += f" ({len(skipped)} file(s) could not be decoded)"
         raise IngestError("too_few_images", why)
     layout.ingest.write_text(json.dumps(result.to_json(), indent=2))
-    log.info("ingest: %d images, %d skipped, %d ignored", len(written), len(skipped), len(ignored))
+    log.info("ingest: %d images (%d from %d videos), %d skipped, %d ignored", len(written),
+             sum(len(v.get("kept", ())) for v in videos), len(videos), len(skipped), len(ignored))
     return result
 
 
