@@ -149,7 +149,7 @@ def _select(container, stream, report: VideoReport, images_dir: Path, stem: str,
             if offer.hold and offer.kept is None:
                 held = (index, frame)
     except (av.FFmpegError, OSError, ValueError, EOFError) as e:  # a broken stream: keep what came before
-        report.error = f"decoding stopped at frame {index}: {_reason(e, path, shown)}"
+        report.error = f"decoding stopped after {index + 1} frame(s): {_reason(e, path, shown)}"
         log.warning("video %s: %s", shown, report.error)
     last = selector.finish() if report.stopped is None else None
     if last is not None and held is not None and held[0] == last.index:
