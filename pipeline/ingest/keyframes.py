@@ -37,8 +37,8 @@ class KeyframeConfig:
 
     target_overlap: float = 0.7  # keep a frame once it shares this fraction of its area with the last keyframe
     window: float = 0.1  # candidates: frames with overlap in (target, target + window]; the sharpest is kept
-    blur_ratio: float = 0.5  # sharper than this fraction of the recent level, or rejected as blurred
-    level_seconds: float = 4.0  # the recent sharpness level spans this much video
+    blur_ratio: float = 0.4  # sharper than this fraction of the recent level, or rejected as blurred
+    level_seconds: float = 3.0  # the recent sharpness level spans this much video
     level_percentile: float = 80.0  # ... and is this percentile of the frames' sharpness there
     still_motion: float = 0.002  # frame-to-frame motion under this fraction of the frame width: the camera is still
     min_peak: float = 0.2  # phase-correlation peak (1 = identical frames) under which two frames do not overlap
