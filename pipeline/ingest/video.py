@@ -63,6 +63,7 @@ class VideoReport:
     size: tuple[int, int] = (0, 0)  # width, height
     codec: str = ""
     creation_time: str | None = None  # the container's, ISO 8601 UTC, when it has one
+    rotation: int = 0  # display rotation (degrees counter-clockwise) applied to the written frames
     kept: list[dict] = field(default_factory=list)  # {image, index, time, capture_time, sharpness, overlap, why}
     rejected: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REJECT_REASONS, 0))
     stopped: str | None = None  # why decoding ended before the stream's end (a cap)
@@ -138,6 +139,8 @@ def _select(container, stream, report: VideoReport, images_dir: Path, stem: str,
                 break
             report.frames_decoded = index + 1
             t = float(frame.time) if frame.time is not None else index / (report.fps or 30.0)
+            if index == 0:
+                report.rotation = round(frame.rotation or 0) % 360
             grey = _analysis_grey(frame, cfg.analysis_width)
             offer = selector.offer(index, t, grey)
             if offer.kept is not None:
@@ -165,9 +168,13 @@ def _analysis_grey(frame, width: int) -> np.ndarray:
 
 
 def _write_jpeg(path: Path, frame, quality: int) -> None:
+    """The frame upright: a phone's display matrix (``frame.rotation``, degrees counter-clockwise, as FFmpeg's
+    av_display_rotation_get) is applied, as players and ``ffmpeg`` (autorotate) do; GoPro-style cameras record 0."""
     from pipeline.scene.images import write_image
 
-    write_image(path, frame.to_ndarray(format="rgb24"), quality=quality)
+    rgb = frame.to_ndarray(format="rgb24")  # [H, W, 3] uint8
+    k = round((frame.rotation or 0) / 90) % 4
+    write_image(path, np.ascontiguousarray(np.rot90(rgb, k)) if k else rgb, quality=quality)
 
 
 def _creation_time(meta: dict) -> datetime | None:

@@ -170,3 +170,28 @@ def test_unreadable_video_error_is_typed(tmp_path: Path) -> None:
     with pytest.raises(VideoError) as e:
         extract_keyframes(p, "x.mov", tmp_path, "x", {}, VideoConfig())
     assert e.value.code == "unreadable_video" and str(tmp_path) not in str(e.value)
+
+
+def test_a_phone_video_is_written_upright(tmp_path: Path) -> None:
+    """A display matrix of 90° (counter-clockwise, as a phone held upright records): frames are rotated so."""
+    rng = np.random.default_rng(0)
+    frame = (rng.random((48, 64, 3)) * 255).astype(np.uint8)
+    frame[:8, :8] = 255  # a white corner, top left as stored
+    p = tmp_path / "phone.mp4"
+    with av.open(str(p), "w") as out:
+        stream = out.add_stream("libx264", rate=10, options={"crf": "10"})
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        stream.set_display_rotation(90)
+        for _ in range(3):
+            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    out_dir = tmp_path / "images"
+    out_dir.mkdir()
+    rep = extract_keyframes(p, "phone.mp4", out_dir, "phone", {}, VideoConfig())
+    assert rep.rotation == 90 and rep.size == (64, 48)
+    img = read_image(out_dir / rep.kept[0]["image"])
+    assert img.shape[:2] == (64, 48)  # upright: portrait
+    # counter-clockwise: the stored top-left corner is now bottom left
+    assert img[-8:, :8].mean() > 0.9 and img[:8, :8].mean() < 0.8
