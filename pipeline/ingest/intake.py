@@ -16,6 +16,7 @@ import logging
 import re
 import shutil
 import unicodedata
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -84,9 +85,11 @@ def _candidates(root: Path) -> list[Path]:
     return sorted(p for p in root.rglob("*") if p.is_file())
 
 
-def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = None) -> IngestResult:
+def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = None,
+           tick: Callable[[float, str], None] | None = None) -> IngestResult:
     """Run the stage: ``source`` is a folder of images or a zip/tar archive. Writes the job's images and
-    ``JobLayout.ingest``; returns the result. Raises IngestError or pipeline.ingest.archive.ArchiveError."""
+    ``JobLayout.ingest``; returns the result. Raises IngestError or pipeline.ingest.archive.ArchiveError.
+    ``tick(fraction of files done, message)`` is called per video and while one decodes (it may raise to stop)."""
     from pipeline.scene.images import ImageReadError, read_pixels, write_image
 
     cfg = cfg or IngestConfig()
@@ -112,14 +115,20 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     written: dict[str, str] = {}
     skipped: list[dict] = []
     videos: list[dict] = []
-    for path in _candidates(root):
+    candidates = _candidates(root)
+    for i, path in enumerate(candidates):
         rel = path.relative_to(root)
         if rel.name.startswith(".") or path.suffix.lower() in NON_IMAGE_SUFFIXES:
             ignored.append({"file": str(rel), "reason": "not an image file"})
             continue
         if is_video(path):
+            on_frames = None
+            if tick is not None:
+                tick(i / len(candidates), f"video {rel}")
+                on_frames = lambda n, i=i, rel=rel: tick(i / len(candidates), f"video {rel}: {n} frames")  # noqa: E731
             try:
-                report = extract_keyframes(path, str(rel), images_dir, Path(safe_name(rel)).stem, written, cfg.video)
+                report = extract_keyframes(path, str(rel), images_dir, Path(safe_name(rel)).stem, written, cfg.video,
+                                           on_frames)
             except VideoError as e:
                 skipped.append({"file": str(rel), "reason": str(e)})
                 videos.append({"file": str(rel), "error": str(e), "code": e.code})

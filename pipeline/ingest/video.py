@@ -15,6 +15,7 @@ the break and records the error.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -27,6 +28,7 @@ log = logging.getLogger(__name__)
 
 VIDEO_EXTENSIONS = frozenset({".mp4", ".mov", ".m4v", ".avi", ".mkv", ".mts", ".m2ts"})
 INDEX_DIGITS = 6  # frame indices in the written names: 10^6 frames is 9 hours at 30 fps
+TICK_FRAMES = 250  # on_frames is called every this many decoded frames (progress, cancellation)
 
 
 @dataclass(frozen=True)
@@ -78,10 +80,12 @@ def is_video(path: Path) -> bool:
 
 
 def extract_keyframes(path: Path, shown: str, images_dir: Path, stem: str, taken: dict[str, str],
-                      cfg: VideoConfig = VideoConfig()) -> VideoReport:
+                      cfg: VideoConfig = VideoConfig(), on_frames: Callable[[int], None] | None = None
+                      ) -> VideoReport:
     """Decode ``path``, write its keyframes to ``images_dir`` as ``<stem>_<index>.jpg`` (names recorded in
-    ``taken``: name → source), return the report. ``shown`` names the file in messages. Raises VideoError when
-    the video gives no frame at all."""
+    ``taken``: name → source), return the report. ``shown`` names the file in messages; ``on_frames(n)`` is
+    called every TICK_FRAMES frames (it may raise to stop: a cancelled job). Raises VideoError when the video
+    gives no frame at all."""
     import av
 
     report = VideoReport(file=shown)
@@ -103,7 +107,7 @@ def extract_keyframes(path: Path, shown: str, images_dir: Path, stem: str, taken
             report.duration_s = round(container.duration / 1e6, 3)  # AV_TIME_BASE microseconds
         created = _creation_time({**container.metadata, **stream.metadata})
         report.creation_time = created.isoformat().replace("+00:00", "Z") if created else None
-        _select(container, stream, report, images_dir, stem, taken, cfg, created, path, shown)
+        _select(container, stream, report, images_dir, stem, taken, cfg, created, path, shown, on_frames)
     if report.frames_decoded == 0:
         raise VideoError("no_frames", f"no frame could be decoded{': ' + report.error if report.error else ''}")
     log.info("video %s: %d frames decoded, %d kept, rejected %s", shown, report.frames_decoded, len(report.kept),
@@ -112,7 +116,8 @@ def extract_keyframes(path: Path, shown: str, images_dir: Path, stem: str, taken
 
 
 def _select(container, stream, report: VideoReport, images_dir: Path, stem: str, taken: dict[str, str],
-            cfg: VideoConfig, created: datetime | None, path: Path, shown: str) -> None:
+            cfg: VideoConfig, created: datetime | None, path: Path, shown: str,
+            on_frames: Callable[[int], None] | None) -> None:
     import av
 
     selector = KeyframeSelector(cfg.keyframes, report.fps or 30.0)
@@ -138,6 +143,8 @@ def _select(container, stream, report: VideoReport, images_dir: Path, stem: str,
                 report.stopped = f"max_frames: decoding stopped after {cfg.max_frames} frames"
                 break
             report.frames_decoded = index + 1
+            if on_frames is not None and report.frames_decoded % TICK_FRAMES == 0:
+                on_frames(report.frames_decoded)
             t = float(frame.time) if frame.time is not None else index / (report.fps or 30.0)
             if index == 0:
                 report.rotation = round(frame.rotation or 0) % 360

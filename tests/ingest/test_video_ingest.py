@@ -195,3 +195,23 @@ def test_a_phone_video_is_written_upright(tmp_path: Path) -> None:
     assert img.shape[:2] == (64, 48)  # upright: portrait
     # counter-clockwise: the stored top-left corner is now bottom left
     assert img[-8:, :8].mean() > 0.9 and img[:8, :8].mean() < 0.8
+
+
+def test_the_stage_reports_video_progress_and_stops_on_cancel(tmp_path: Path, clip: Path, monkeypatch) -> None:
+    from pipeline.ingest import video as video_module
+    from pipeline.ingest.stage import stage_ingest
+    from pipeline.job.options import JobCancelled, JobOptions, StageContext
+
+    monkeypatch.setattr(video_module, "TICK_FRAMES", 50)  # the clip has 130 frames
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "clip.mp4").write_bytes(clip.read_bytes())
+    seen: list[str] = []
+    ctx = StageContext(on_progress=lambda stage, f, msg: seen.append(msg))
+    res = stage_ingest(tmp_path / "job", JobOptions(source=str(src)), ctx)
+    assert seen == ["video clip.mp4", "video clip.mp4: 50 frames", "video clip.mp4: 100 frames"]
+    assert res["videos"][0]["frames_decoded"] == 130
+    calls = iter([False, False, True])
+    ctx = StageContext(should_cancel=lambda: next(calls))
+    with pytest.raises(JobCancelled, match="clip.mp4: 100 frames"):
+        stage_ingest(tmp_path / "job2", JobOptions(source=str(src)), ctx)
