@@ -5,6 +5,8 @@ Prints one table row per stage: seconds, frames decoded, keyframes kept and why,
 reprojection error. Long by nature (the ray caster renders ~0.4 s a frame at 160x120 on one core).
 
     python bench/video.py [--frames 160 --width 240 --height 180 --step 0.05] [--json]
+    python bench/video.py --decode 1920x1080 --frames 300   # ingest alone on a camera-size video: seconds and
+                                                            # peak memory (VmHWM of a child process)
 """
 
 from __future__ import annotations
@@ -12,10 +14,71 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import multiprocessing as mp
+import resource
 import tempfile
 import time
 from collections import Counter
 from pathlib import Path
+
+
+def _peak_mb() -> float:
+    """This process's RSS high-water mark (VmHWM: starts afresh at exec, unlike ru_maxrss, which keeps the
+    forking parent's)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _ingest_child(upload: str, job: str, q) -> None:
+    """Child process: ingest alone, so its RSS high-water mark is the ingest's (plus imports)."""
+    from pipeline.ingest.intake import ingest
+
+    t = time.perf_counter()
+    res = ingest(upload, job)
+    q.put((time.perf_counter() - t, res.videos[0]["frames_decoded"], len(res.images),
+           _peak_mb()))
+
+
+def _imports_child(q) -> None:
+    import av  # noqa: F401
+
+    import pipeline.ingest.intake  # noqa: F401
+    import pipeline.scene.images  # noqa: F401
+
+    q.put(_peak_mb())
+
+
+def decode_bench(size: str, frames: int, fps: int, root: Path) -> dict:
+    """A panning video of ``size`` (a seeded texture, 0.4 % of the width per frame) through ingest, in a child."""
+    import numpy as np
+
+    from pipeline.synth.video import encode_video
+
+    w, h = (int(v) for v in size.split("x"))
+    rng = np.random.default_rng(0)
+    step = max(1, w // 250)
+    tex = rng.random((h // 8 + 1, (w + step * frames) // 8 + 2, 3))
+    tex = (np.repeat(np.repeat(tex, 8, 0), 8, 1) * 255).astype(np.uint8)
+    (root / "upload").mkdir(parents=True, exist_ok=True)
+    t = time.perf_counter()
+    video = encode_video((tex[:h, i * step:i * step + w] for i in range(frames)), root / "upload" / "cam.mp4", fps)
+    encode_s = time.perf_counter() - t
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=_imports_child, args=(q,))
+    p.start()
+    base_mb = q.get()
+    p.join()
+    p = ctx.Process(target=_ingest_child, args=(str(root / "upload"), str(root / "job"), q))
+    p.start()
+    seconds, decoded, kept, peak_mb = q.get()
+    p.join()
+    return {"size": size, "frames": decoded, "video_mb": round(video.stat().st_size / 2**20, 1),
+            "encode_s": round(encode_s, 1), "ingest_s": round(seconds, 2), "fps_decoded": round(decoded / seconds, 1),
+            "keyframes": kept, "peak_rss_mb": round(peak_mb), "imports_rss_mb": round(base_mb),
+            "one_frame_rgb_mb": round(w * h * 3 / 2**20, 1)}
 
 
 def main() -> None:
@@ -27,8 +90,16 @@ def main() -> None:
     ap.add_argument("--step", type=float, default=0.05, help="metres flown per frame")
     ap.add_argument("--out", type=Path, default=None, help="keep the video and job here (default: a temp folder)")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--decode", default=None, metavar="WxH", help="time ingest alone on a panning video this size")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    if args.decode:
+        out = decode_bench(args.decode, args.frames, args.fps,
+                           args.out or Path(tempfile.mkdtemp(prefix="bench-decode-")))
+        print(" ".join(f"{k}={v}" for k, v in out.items()))
+        if args.json:
+            print(json.dumps(out))
+        return
 
     import torch
 
