@@ -7,7 +7,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from video_fixtures import BLUR_PX, SEGMENTS, STEP, H, W, segment_of, texture, write_segment_video
+from video_fixtures import (
+    BLUR_PX,
+    SEGMENTS,
+    STEP,
+    H,
+    W,
+    segment_frames,
+    segment_of,
+    texture,
+    write_segment_video,
+)
 
 from pipeline.ingest.keyframes import (
     KeyframeConfig,
@@ -18,6 +28,7 @@ from pipeline.ingest.keyframes import (
     sharpness,
 )
 from pipeline.ingest.video import VideoConfig, extract_keyframes
+from pipeline.scene.images import read_image
 
 
 def _grey(rgb: np.ndarray) -> np.ndarray:
@@ -109,6 +120,14 @@ def test_still_and_blurred_segments_do_not_flood_the_keyframes(tmp_path: Path) -
     for a, b, k in zip(idx, idx[1:], rep.kept[1:]):
         assert k["overlap"] == pytest.approx(overlap_of(0, xs[b] - xs[a], H, W), abs=0.02)
     assert sorted(taken) == [f"clip_{i:06d}.jpg" for i in idx]
+    # each written image is the frame of its index (a held candidate, written frames later, is not overwritten
+    # by the decoder): closest to that source frame, within the two codecs' loss
+    frames = [f for _, f in segment_frames()]
+    for i in idx:
+        img = read_image(out / f"clip_{i:06d}.jpg")
+        err = {j: float(np.abs(img - frames[j] / 255.0).mean()) for j in range(max(0, i - 2), min(len(frames), i + 3))}
+        assert min(err, key=err.get) == i or (segment_of(i) == 1 and err[i] < 0.05), (i, err)
+        assert err[i] < 0.05, (i, err)  # neighbours 3 px away differ by ~0.1
     assert all(k["time"] == pytest.approx(k["index"] / 10, abs=1e-6) for k in rep.kept)
     assert rep.kept[-1]["index"] >= sum(n for _, n in SEGMENTS) - 14  # the end is covered
 
