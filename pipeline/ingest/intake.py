@@ -87,9 +87,10 @@ def _candidates(root: Path) -> list[Path]:
 
 def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = None,
            tick: Callable[[float, str], None] | None = None) -> IngestResult:
-    """Run the stage: ``source`` is a folder of images or a zip/tar archive. Writes the job's images and
-    ``JobLayout.ingest``; returns the result. Raises IngestError or pipeline.ingest.archive.ArchiveError.
-    ``tick(fraction of files done, message)`` is called per video and while one decodes (it may raise to stop)."""
+    """Run the stage: ``source`` is a folder of images (and videos), a zip/tar archive of them, or one video.
+    Writes the job's images and ``JobLayout.ingest``; returns the result. Raises IngestError or
+    pipeline.ingest.archive.ArchiveError. ``tick(fraction of files done, message)`` is called per video and while
+    one decodes (it may raise to stop)."""
     from pipeline.scene.images import ImageReadError, read_pixels, write_image
 
     cfg = cfg or IngestConfig()
@@ -103,19 +104,22 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     ignored: list[dict] = []
     if source.is_dir():
         root = source
+        candidates = _candidates(root)
+    elif source.is_file() and is_video(source):  # one video as the whole input (`dualphys run dive.mp4`)
+        root, candidates = source.parent, [source]
     elif source.is_file():
         if unpacked.exists():
             shutil.rmtree(unpacked)
         extracted = extract_archive(source, unpacked, cfg.limits)
         ignored += [{"file": n, "reason": why} for n, why in extracted.ignored]
         root = unpacked
+        candidates = _candidates(root)
     else:
         raise IngestError("no_input", f"no such file or folder: {source}")
 
     written: dict[str, str] = {}
     skipped: list[dict] = []
     videos: list[dict] = []
-    candidates = _candidates(root)
     for i, path in enumerate(candidates):
         rel = path.relative_to(root)
         if rel.name.startswith(".") or path.suffix.lower() in NON_IMAGE_SUFFIXES:

@@ -215,3 +215,11 @@ def test_the_stage_reports_video_progress_and_stops_on_cancel(tmp_path: Path, cl
     ctx = StageContext(should_cancel=lambda: next(calls))
     with pytest.raises(JobCancelled, match="clip.mp4: 100 frames"):
         stage_ingest(tmp_path / "job2", JobOptions(source=str(src)), ctx)
+
+
+def test_one_video_is_a_whole_input(tmp_path: Path, clip: Path) -> None:
+    """`dualphys run dive.mp4`: the video file itself is the source; its neighbours in the folder are not read."""
+    (clip.parent / "other.jpg").write_bytes(b"not read")
+    res = ingest(clip, tmp_path / "job")
+    assert res.source == "GOPR0042.MP4" and len(res.images) == len(res.videos[0]["kept"]) >= 8
+    assert all(n.startswith("GOPR0042_") for n in res.images) and not res.skipped and not res.ignored
