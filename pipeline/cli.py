@@ -189,7 +189,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     src = Path(args.input)
     if not src.exists():
-        return _fail("run", f"{src} does not exist: give a folder of images or a zip/tar archive of them")
+        return _fail("run", f"{src} does not exist: give a folder of images, a zip/tar archive of them or a video")
     opts = JobOptions(source=str(src.resolve()), preset=args.preset, mode=args.mode, max_width=args.max_width,
                       iterations=args.iterations, seed=args.seed, colour_space=args.colour_space,
                       restore_format=args.format, max_gain=args.max_gain)
@@ -368,7 +368,8 @@ def build_parser() -> argparse.ArgumentParser:
     defaults = JobOptions()
     s = sub.add_parser("run", help="run a whole job (ingest, sfm, classify, train, evaluate, restore, export) in "
                                    "this process; re-running resumes")
-    s.add_argument("input", type=Path, help="a folder of images or a zip/tar archive of them")
+    s.add_argument("input", type=Path,
+                   help="a folder of images (and videos), a zip/tar archive of them, or one video (MP4/MOV)")
     s.add_argument("--out", required=True, type=Path, help="the job folder (created; reused to resume)")
     s.add_argument("--preset", default="fast", choices=["fast", "balanced", "paper"])
     s.add_argument("--mode", default="auto", choices=list(JOB_MODES),

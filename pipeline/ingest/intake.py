@@ -3,7 +3,9 @@
 Every candidate file is decoded (by content, not name). Readable images land in ``images/`` under a flat,
 safe name (sub-folders become ``a__b__name``); JPEG/PNG files already in display orientation are copied
 byte for byte, anything else (rotated by EXIF, TIFF, EXR, WebP, misnamed files) is written as PNG in display
-orientation. Unreadable files are skipped and listed with the reason; non-image files are ignored and listed.
+orientation. Video files (:mod:`pipeline.ingest.video`) give their keyframes, written as
+``<video>_<frame index>.jpg``, and an entry in ``videos``. Unreadable files (and videos that give no frame) are
+skipped and listed with the reason; non-image files are ignored and listed.
 Fewer than ``min_images`` usable images is an :class:`IngestError` (the caller maps it to a 4xx / exit 1).
 """
 
@@ -14,18 +16,20 @@ import logging
 import re
 import shutil
 import unicodedata
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.ingest.archive import ArchiveLimits, extract_archive
+from pipeline.ingest.video import VideoConfig, VideoError, extract_keyframes, is_video
 from pipeline.job.layout import JobLayout
 
 log = logging.getLogger(__name__)
 
 NON_IMAGE_SUFFIXES = frozenset({".txt", ".md", ".csv", ".json", ".xml", ".yaml", ".yml", ".log", ".pdf", ".doc",
-                                ".docx", ".html", ".py", ".sh", ".db", ".ini", ".cfg", ".mp4", ".mov", ".avi"})
+                                ".docx", ".html", ".py", ".sh", ".db", ".ini", ".cfg"})
 
 
 class IngestError(ValueError):
@@ -40,6 +44,7 @@ class IngestError(ValueError):
 class IngestConfig:
     min_images: int = 3  # fewer usable images than this cannot make a reconstruction
     limits: ArchiveLimits = field(default_factory=ArchiveLimits)
+    video: VideoConfig = field(default_factory=VideoConfig)  # keyframes from video files
 
 
 @dataclass
@@ -48,6 +53,7 @@ class IngestResult:
     skipped: list[dict]  # {"file", "reason"}: looked like images but could not be decoded
     ignored: list[dict]  # {"file", "reason"}: not images (notes, hidden files ...)
     source: str
+    videos: list[dict] = field(default_factory=list)  # per video file: pipeline.ingest.video.VideoReport
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -79,9 +85,12 @@ def _candidates(root: Path) -> list[Path]:
     return sorted(p for p in root.rglob("*") if p.is_file())
 
 
-def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = None) -> IngestResult:
-    """Run the stage: ``source`` is a folder of images or a zip/tar archive. Writes the job's images and
-    ``JobLayout.ingest``; returns the result. Raises IngestError or pipeline.ingest.archive.ArchiveError."""
+def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = None,
+           tick: Callable[[float, str], None] | None = None) -> IngestResult:
+    """Run the stage: ``source`` is a folder of images (and videos), a zip/tar archive of them, or one video.
+    Writes the job's images and ``JobLayout.ingest``; returns the result. Raises IngestError or
+    pipeline.ingest.archive.ArchiveError. ``tick(fraction of files done, message)`` is called per video and while
+    one decodes (it may raise to stop)."""
     from pipeline.scene.images import ImageReadError, read_pixels, write_image
 
     cfg = cfg or IngestConfig()
@@ -95,21 +104,40 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     ignored: list[dict] = []
     if source.is_dir():
         root = source
+        candidates = _candidates(root)
+    elif source.is_file() and is_video(source):  # one video as the whole input (`dualphys run dive.mp4`)
+        root, candidates = source.parent, [source]
     elif source.is_file():
         if unpacked.exists():
             shutil.rmtree(unpacked)
         extracted = extract_archive(source, unpacked, cfg.limits)
         ignored += [{"file": n, "reason": why} for n, why in extracted.ignored]
         root = unpacked
+        candidates = _candidates(root)
     else:
         raise IngestError("no_input", f"no such file or folder: {source}")
 
     written: dict[str, str] = {}
     skipped: list[dict] = []
-    for path in _candidates(root):
+    videos: list[dict] = []
+    for i, path in enumerate(candidates):
         rel = path.relative_to(root)
         if rel.name.startswith(".") or path.suffix.lower() in NON_IMAGE_SUFFIXES:
             ignored.append({"file": str(rel), "reason": "not an image file"})
+            continue
+        if is_video(path):
+            on_frames = None
+            if tick is not None:
+                tick(i / len(candidates), f"video {rel}")
+                on_frames = lambda n, i=i, rel=rel: tick(i / len(candidates), f"video {rel}: {n} frames")  # noqa: E731
+            try:
+                report = extract_keyframes(path, str(rel), images_dir, Path(safe_name(rel)).stem, written, cfg.video,
+                                           on_frames)
+            except VideoError as e:
+                skipped.append({"file": str(rel), "reason": str(e)})
+                videos.append({"file": str(rel), "error": str(e), "code": e.code})
+                continue
+            videos.append(report.to_json())
             continue
         try:
             px = read_pixels(path)  # full decode: catches truncated and corrupt files
@@ -129,14 +157,15 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
         written[name] = str(rel)
     if unpacked.exists():
         shutil.rmtree(unpacked)
-    result = IngestResult(sorted(written), skipped, ignored, shown_source(source, job_dir))
+    result = IngestResult(sorted(written), skipped, ignored, shown_source(source, job_dir), videos)
     if len(written) < cfg.min_images:
         why = f"{len(written)} usable image(s) found; at least {cfg.min_images} are needed"
         if skipped:
             why += f" ({len(skipped)} file(s) could not be decoded)"
         raise IngestError("too_few_images", why)
     layout.ingest.write_text(json.dumps(result.to_json(), indent=2))
-    log.info("ingest: %d images, %d skipped, %d ignored", len(written), len(skipped), len(ignored))
+    log.info("ingest: %d images (%d from %d videos), %d skipped, %d ignored", len(written),
+             sum(len(v.get("kept", ())) for v in videos), len(videos), len(skipped), len(ignored))
     return result
 
 

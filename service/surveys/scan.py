@@ -1,7 +1,8 @@
 """One scan of one survey: every new image set (:mod:`.sets`) becomes exactly one job.
 
-- A set is submitted when it has at least ``min_images`` images and its newest image (by modification time, not
-  capture time) is at least ``settle_s`` old (the ROV has stopped writing to it). Smaller sets and sets still
+- A set is submitted when it has at least ``min_images`` images, or a video (whose keyframes ingest takes), and
+  its newest file (by modification time, not capture time) is at least ``settle_s`` old (the ROV has stopped
+  writing to it). Smaller sets and sets still
   being written are listed on the survey as ``waiting`` with the reason.
 - The job id is derived from (survey, set hash), and a job folder that exists is never created again, so re-scans,
   concurrent scanners and restarts of beat or workers never submit a set twice. A set that changes after
@@ -86,7 +87,7 @@ def _scan_tree(registry: SurveyRegistry, survey: Survey, jobs, cfg: ScanConfig, 
     state.waiting = []
     for image_set in group_images(files, cfg.gap_s):
         n = len(image_set.files)
-        if n < cfg.min_images:
+        if n < cfg.min_images and not image_set.videos:
             state.waiting.append(WaitingSet(name=image_set.name, images=n, reason=(
                 f"too_few_images: {n} image(s); a set needs at least {cfg.min_images} to be reconstructed "
                 f"(it is submitted once it has them)")))
@@ -171,7 +172,7 @@ def submit_set(jobs, survey: Survey, image_set: ImageSet, h: str, job_id: str,
         raise
     opts = {**survey.options.model_dump(), "source": str(JobLayout(final).input)}
     source = {"kind": "survey", "survey_id": survey.id, "set": image_set.name, "set_hash": h,
-              "images": len(image_set.files)}
+              "images": len(image_set.files) - image_set.videos, "videos": image_set.videos}
     jobs.create(job_id, survey.owner, opts, source, survey_id=survey.id, callback_url=survey.callback_url)
     return True
 

@@ -11,7 +11,8 @@ Grouping rule (also in docs/SERVICE.md):
   is cached in the survey's scan state.
 - Identity is content: a set's hash (:func:`set_hash`) covers every image's relative path and SHA-256.
 
-Hidden files and folders, symbolic links and non-image suffixes are ignored.
+Video files (:data:`pipeline.ingest.video.VIDEO_EXTENSIONS`: MP4, MOV ...) belong to sets like images; ingest
+takes their keyframes. Hidden files and folders, symbolic links and other suffixes are ignored.
 """
 
 from __future__ import annotations
@@ -23,12 +24,13 @@ from dataclasses import dataclass, replace
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
+from pipeline.ingest.video import VIDEO_EXTENSIONS
 from pipeline.scene.images import DECODABLE_EXTENSIONS
 
 from ..safe_fs import FolderTree
 from .exif import read_exif_time
 
-IMAGE_SUFFIXES = DECODABLE_EXTENSIONS
+IMAGE_SUFFIXES = DECODABLE_EXTENSIONS | VIDEO_EXTENSIONS  # what a set is made of: photos and videos
 HASH_CHUNK = 1 << 20
 
 
@@ -41,6 +43,10 @@ class ImageFile:
     exif_time: float | None = None  # EXIF capture time (Unix seconds); None: not read, or the file has none
 
     @property
+    def is_video(self) -> bool:
+        return PurePosixPath(self.rel).suffix.lower() in VIDEO_EXTENSIONS
+
+    @property
     def capture_time(self) -> float:
         """When the image was taken: its EXIF time when it has one, else its modification time."""
         return self.mtime if self.exif_time is None else self.exif_time
@@ -50,6 +56,10 @@ class ImageFile:
 class ImageSet:
     name: str
     files: list[ImageFile]
+
+    @property
+    def videos(self) -> int:
+        return sum(f.is_video for f in self.files)
 
     @property
     def newest(self) -> float:

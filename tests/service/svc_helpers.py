@@ -80,6 +80,23 @@ def small_jpegs(n: int, seed: int = 0, size: tuple[int, int] = (24, 32)) -> list
     return out
 
 
+def small_video(frames: int = 40, seed: int = 0) -> bytes:
+    """A short H.264 MP4 (128x96, 10 fps) panning 4 px a frame over a smooth random texture: a few keyframes."""
+    import tempfile
+
+    import numpy as np
+
+    from pipeline.synth.video import encode_video
+
+    rng = np.random.default_rng(seed)
+    tex = rng.random((28, 32 + frames, 3))
+    tex = np.repeat(np.repeat(tex, 4, 0), 4, 1)  # 4 px blocks: structure the codec keeps
+    with tempfile.TemporaryDirectory() as d:
+        p = encode_video(((tex[8:104, 4 * i:4 * i + 128] * 255).astype(np.uint8) for i in range(frames)),
+                         Path(d) / "v.mp4", 10)
+        return p.read_bytes()
+
+
 def make_settings(data_dir: Path, prefix: str, **over):
     from service.settings import load_settings
 

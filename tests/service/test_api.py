@@ -4,7 +4,7 @@ listing, cancel/retry/delete of queued jobs, surveys registration, OpenAPI."""
 from __future__ import annotations
 
 import pytest
-from svc_helpers import auth, small_jpegs, zip_bytes
+from svc_helpers import auth, small_jpegs, small_video, zip_bytes
 
 
 @pytest.fixture(scope="module")
@@ -67,6 +67,18 @@ def test_jobs_are_invisible_to_other_owners(api, good_zip) -> None:
     assert api.get("/v1/jobs", headers=auth("bob")).json()["total"] == 0
     assert api.get(f"/v1/jobs/{jid}", headers=auth("alice")).json()["id"] == jid
     assert api.get("/v1/jobs", headers=auth("alice")).json()["jobs"][0]["id"] == jid
+
+
+def test_an_upload_of_one_video_becomes_a_job(api) -> None:
+    """A zip holding only a video (and a broken one) is not refused: ingest takes its keyframes."""
+    archive = zip_bytes({"dive/GX010042.MP4": small_video(), "dive/broken.mov": b"\x00" * 4096})
+    r = create(api, "alice", archive)
+    assert r.status_code == 201, r.text
+    ing = r.json()["ingest"]
+    assert 4 <= ing["images"] <= 8 and [s["file"] for s in ing["skipped"]] == ["dive/broken.mov"]
+    assert [(v["file"], v["frames_decoded"], v["kept"]) for v in ing["videos"]][0] == \
+        ("dive/GX010042.MP4", 40, ing["images"])
+    assert ing["videos"][1]["file"] == "dive/broken.mov" and "not a readable video" in ing["videos"][1]["error"]
 
 
 def test_idempotency_key_returns_the_first_job(api, good_zip) -> None:

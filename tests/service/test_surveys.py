@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from svc_helpers import small_jpegs
+from svc_helpers import small_jpegs, small_video
 
 from service.surveys.exif import read_exif_time
 from service.surveys.registry import SurveyError, SurveyOptions, SurveyRegistry
@@ -67,6 +67,23 @@ def test_each_set_becomes_exactly_one_job(rt) -> None:
     second = scan(reg, survey, rt.jobs, cfg)
     assert len(second) == 1 and rt.store.read(second[0]).source["images"] == 3
     assert reg.state(survey.id).scans == 4 and len(reg.state(survey.id).sets) == 2  # 4 since the state was lost
+
+
+def test_a_folder_with_one_video_is_a_set(rt) -> None:
+    """A video counts as enough for a set (its keyframes are the images); it is copied like a photo."""
+    site = rt.settings.survey_roots[0] / "rov"
+    (site / "transect-1").mkdir(parents=True)
+    (site / "transect-1" / "cam.mp4").write_bytes(small_video())
+    (site / "transect-1" / "notes.txt").write_text("not part of the set")
+    _write(site / "transect-2", 2, seed=5)  # two photos and no video: waits
+    reg = _registry(rt)
+    survey = reg.register("alice", str(site), 1, None, SurveyOptions())
+    jobs = scan(reg, survey, rt.jobs, ScanConfig(min_images=3, settle_s=0, gap_s=300))
+    assert len(jobs) == 1
+    m = rt.store.read(jobs[0])
+    assert m.source["set"] == "transect-1" and m.source["images"] == 0 and m.source["videos"] == 1
+    assert [p.name for p in (rt.store.layout(jobs[0]).input / "transect-1").iterdir()] == ["cam.mp4"]
+    assert [w.name for w in reg.state(survey.id).waiting] == ["transect-2"]
 
 
 def test_loose_images_split_by_time_gaps_and_wait_to_settle(rt) -> None:

@@ -52,6 +52,14 @@ class IngestOut(BaseModel):
     skipped_count: int = 0
     ignored: list[dict] = Field(default_factory=list, description=f"files that are not images (first {LIST_CAP})")
     ignored_count: int = 0
+    videos: list[dict] = Field(default_factory=list, description=(
+        f"video files (first {LIST_CAP}): file, frames decoded, keyframes kept, error; every keyframe with its "
+        "reasons is in the ingest.json artifact"))
+
+
+def video_summaries(videos: list[dict]) -> list[dict]:
+    return [{"file": v.get("file"), "frames_decoded": v.get("frames_decoded", 0), "kept": len(v.get("kept", [])),
+             "error": v.get("error")} for v in videos[:LIST_CAP]]
 
 
 class RunOut(BaseModel):
@@ -107,7 +115,8 @@ class JobOut(BaseModel):
         if m.ingest is not None:
             skipped, ignored = m.ingest.get("skipped", []), m.ingest.get("ignored", [])
             ingest = IngestOut(images=len(m.ingest.get("images", [])), skipped=skipped[:LIST_CAP],
-                               skipped_count=len(skipped), ignored=ignored[:LIST_CAP], ignored_count=len(ignored))
+                               skipped_count=len(skipped), ignored=ignored[:LIST_CAP], ignored_count=len(ignored),
+                               videos=video_summaries(m.ingest.get("videos", [])))
         return cls(id=m.id, state=v.state, worker_lost=v.worker_lost, stage=v.stage, progress=v.progress,
                    message=v.message,
                    created_at=m.created_at, updated_at=m.updated_at,
