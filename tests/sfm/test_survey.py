@@ -10,7 +10,7 @@ import pycolmap
 import pytest
 
 from pipeline.config import SfmConfig
-from pipeline.sfm.loops import MAX_WORDS, MIN_WORDS, num_words
+from pipeline.sfm.loops import MAX_WORDS, MIN_WORDS, build_vocab_tree, num_words
 from pipeline.sfm.recipe import run_sfm
 
 REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
@@ -64,7 +64,12 @@ def test_sequential_matching_finds_loops_on_its_own_vocabulary(tmp_path: Path) -
     cfg = SfmConfig(num_threads=2, matcher="sequential", sequential_overlap=2, max_image_size=480)
     s = run_sfm(src, tmp_path / "out", cfg)
     assert s.outcome == "single" and s.registered >= 11
-    assert (tmp_path / "out" / "distorted" / "vocab_tree.bin").stat().st_size > 10_000
+    tree = tmp_path / "out" / "distorted" / "vocab_tree.bin"
+    assert tree.stat().st_size > 10_000
+    # Seeded: the same database gives the same tree, byte for byte (unseeded builds differed).
+    again = tmp_path / "again.bin"
+    build_vocab_tree(tmp_path / "out" / "distorted" / "database.db", again, num_threads=2, seed=cfg.seed)
+    assert again.read_bytes() == tree.read_bytes()
     assert "vocab" in s.phase_seconds
     # Window 2 plus quadratic jumps pair 12 frames 2+... ways; loop pairs are those at other distances (3, 5, 6..)
     assert s.loop_pairs >= 5, s
