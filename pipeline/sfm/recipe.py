@@ -8,8 +8,8 @@ registered images → undistort to PINHOLE. Output folder ``OUT``::
     OUT/sparse/0/{cameras,images,points3D}.bin   PINHOLE model (+ rigs.bin, frames.bin from pycolmap 4)
     OUT/distorted/database.db                features and matches
     OUT/distorted/sparse/0/                  the model before undistortion (cfg.camera_model cameras)
-    OUT/distorted/sparse/1, 2, ...           the other models when the survey broke apart (smaller first
-                                             by rank: 1 is the second largest), kept for separate processing
+    OUT/distorted/sparse/1, 2, ...           the other models when the survey broke apart (1 is the second
+                                             largest, and so on), kept for separate processing
     OUT/distorted/vocab_tree.bin             sequential matching only: the survey's own tree for loops
 
 pycolmap "warns and returns an empty result" on hopeless input; here every such case is a typed
@@ -226,9 +226,11 @@ def run_sfm(
             recs, names = attempt.run(distorted / "database.db", src_dir, distorted, images_dir)
         except (NoModelError, TooFewRegisteredError) as e:
             first_error = e
-        if recs is None or recs[0].num_reg_images() < RETRY_BELOW_REGISTERED * len(names):
+        placed_anywhere = sum(r.num_reg_images() for r in recs) if recs is not None else 0
+        if placed_anywhere < RETRY_BELOW_REGISTERED * len(names):
             # Murky water: SIFT's contrast threshold leaves too few features on a dark, hazy frame. Extract
             # them again from contrast-stretched copies (mapping still reads the originals for point colours).
+            # Images placed in any model count: a survey split into well-registered parts is not murky.
             stretched = _stage_stretched(src_dir, names, distorted / "stretched")
             first_stats = attempt.stats
             try:
