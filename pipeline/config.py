@@ -48,7 +48,10 @@ class SfmConfig:
     """The pycolmap SfM recipe (``pipeline.sfm.recipe``)."""
 
     matcher: Matcher = "auto"  # auto: see pipeline.sfm.recipe.choose_matcher for the rule
-    sequential_overlap: int = 10  # neighbours matched per frame in sequential mode
+    sequential_overlap: int = 10  # neighbours matched per frame in sequential mode (plus quadratic jumps)
+    # Sequential mode also matches loop candidates from a vocabulary tree built from the survey's own features
+    # (pipeline.sfm.loops), so lines that revisit the seabed are tied together.
+    loop_detection: bool = True
     exhaustive_max_images: int = 60  # auto uses exhaustive up to this many images
     max_image_size: int = 1600  # SIFT works on images downscaled to this longest side
     max_num_features: int = 8192

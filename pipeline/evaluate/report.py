@@ -131,7 +131,8 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
     return json_safe(relative_paths(report, job))
 
 
-SFM_FIELDS = ("registered", "total", "mean_reproj_error_px", "num_points3D", "matcher")
+SFM_FIELDS = ("registered", "total", "mean_reproj_error_px", "num_points3D", "matcher", "pairs_matched", "loop_pairs",
+              "outcome", "other_models", "unregistered")
 
 
 def input_summary(job: Path, options: dict) -> dict[str, Any]:

@@ -131,7 +131,17 @@ def _inputs(r: dict) -> str:
         return html + "<p class=muted>No SfM summary (the sfm stage has not run).</p>"
     return html + (f"<p>SfM registered <b>{fmt(sfm['registered'])} of {fmt(sfm['total'])}</b> images, mean "
                    f"reprojection error {fmt(sfm['mean_reproj_error_px'], 3)} px, {fmt(sfm['num_points3D'])} "
-                   f"points, {fmt(sfm['matcher'])} matching.</p>")
+                   f"points, {fmt(sfm['matcher'])} matching.</p>" + _split(sfm))
+
+
+def _split(sfm: dict) -> str:
+    """The images left out when the survey broke into several models (only the largest was used)."""
+    others = sfm.get("other_models") or []
+    if not others:
+        return ""
+    parts = "; ".join(f"{m['registered']} images ({escape(', '.join(m['images']))})" for m in others)
+    return (f"<p><b>The survey broke into {len(others) + 1} models</b>; only the largest was used. Left out: "
+            f"{parts}.</p>")
 
 
 def _selection(r: dict) -> str:

@@ -8,6 +8,9 @@ registered images → undistort to PINHOLE. Output folder ``OUT``::
     OUT/sparse/0/{cameras,images,points3D}.bin   PINHOLE model (+ rigs.bin, frames.bin from pycolmap 4)
     OUT/distorted/database.db                features and matches
     OUT/distorted/sparse/0/                  the model before undistortion (cfg.camera_model cameras)
+    OUT/distorted/sparse/1, 2, ...           the other models when the survey broke apart (1 is the second
+                                             largest, and so on), kept for separate processing
+    OUT/distorted/vocab_tree.bin             sequential matching only: the survey's own tree for loops
 
 pycolmap "warns and returns an empty result" on hopeless input; here every such case is a typed
 :class:`SfmError` whose message says what to fix. Only SIFT is used: this pycolmap wheel aborts the whole
@@ -41,6 +44,7 @@ from pipeline.scene.images import (
     read_image,
     write_image,
 )
+from pipeline.sfm.loops import LOOP_NUM_IMAGES, LOOP_PERIOD, build_vocab_tree
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +81,15 @@ class TooFewRegisteredError(SfmError):
 
 
 @dataclass
+class SubModel:
+    """A model SfM built besides the kept one: where it is on disk and which images it placed."""
+
+    index: int  # written to distorted/sparse/<index>
+    registered: int
+    images: list[str]
+
+
+@dataclass
 class SfmSummary:
     """What the SfM stage did; JSON-able through :meth:`to_dict`."""
 
@@ -89,9 +102,20 @@ class SfmSummary:
     skipped: list[tuple[str, str]] = field(default_factory=list)  # (file name, reason) not used at all
     warnings: list[str] = field(default_factory=list)
     unregistered: list[str] = field(default_factory=list)  # readable images the model could not place
+    # The survey broke into several models: the largest is kept (sparse/0), the others are listed here
+    # (largest first) and written to distorted/sparse/1, 2, ... Their images are in ``unregistered`` too.
+    other_models: list[SubModel] = field(default_factory=list)
+    pairs_matched: int = 0  # image pairs with geometrically verified inliers
+    loop_pairs: int = 0  # of those, pairs further apart in name order than the sequential window (loops)
+    phase_seconds: dict[str, float] = field(default_factory=dict)  # extract, vocab, match, map, undistort
+
+    @property
+    def outcome(self) -> str:
+        """``"split"`` when the images formed several models (the largest kept), else ``"single"``."""
+        return "split" if self.other_models else "single"
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        return {**asdict(self), "outcome": self.outcome}
 
 
 def choose_matcher(names: list[str], cfg: SfmConfig) -> Literal["exhaustive", "sequential"]:
@@ -197,36 +221,50 @@ def run_sfm(
         ext.max_image_size = cfg.max_image_size
         ext.sift.max_num_features = cfg.max_num_features
         attempt = _Attempt(src_dir, names, camera_mode, reader, ext, matcher, cfg, cancellation_token, skipped)
-        rec, first_error = None, None
+        recs, first_error = None, None
         try:
-            rec, names = attempt.run(distorted / "database.db", src_dir, distorted, images_dir)
+            recs, names = attempt.run(distorted / "database.db", src_dir, distorted, images_dir)
         except (NoModelError, TooFewRegisteredError) as e:
             first_error = e
-        if rec is None or rec.num_reg_images() < RETRY_BELOW_REGISTERED * len(names):
+        placed_anywhere = sum(r.num_reg_images() for r in recs) if recs is not None else 0
+        if placed_anywhere < RETRY_BELOW_REGISTERED * len(names):
             # Murky water: SIFT's contrast threshold leaves too few features on a dark, hazy frame. Extract
             # them again from contrast-stretched copies (mapping still reads the originals for point colours).
+            # Images placed in any model count: a survey split into well-registered parts is not murky.
             stretched = _stage_stretched(src_dir, names, distorted / "stretched")
+            first_stats = attempt.stats
             try:
-                rec2, names2 = attempt.run(distorted / "database_stretched.db", stretched, distorted, images_dir)
+                recs2, names2 = attempt.run(distorted / "database_stretched.db", stretched, distorted, images_dir)
             except (NoModelError, TooFewRegisteredError):
-                rec2 = None
-            if rec2 is not None and (rec is None or rec2.num_reg_images() > rec.num_reg_images()):
+                recs2 = None
+            n_before = recs[0].num_reg_images() if recs is not None else 0
+            if recs2 is not None and recs2[0].num_reg_images() > n_before:
                 warnings.append(f"low-contrast images: features were extracted from contrast-stretched copies "
-                                f"({rec2.num_reg_images()} registered, "
-                                f"{rec.num_reg_images() if rec is not None else 0} without)")
-                rec, names = rec2, names2
-        if rec is None:
+                                f"({recs2[0].num_reg_images()} registered, {n_before} without)")
+                recs, names = recs2, names2
+            else:
+                attempt.stats = first_stats
+        if recs is None:
             assert first_error is not None
             raise first_error
+        rec = recs[0]
         registered = rec.num_reg_images()
         reproj = float(rec.compute_mean_reprojection_error())
-        model_dir = distorted / "sparse" / "0"
-        model_dir.mkdir(parents=True)
-        rec.write(str(model_dir))
-        _undistort(model_dir, src_dir, out, distorted / "_undistort", cfg, cancellation_token)
+        others = _write_models(recs, distorted / "sparse")
+        t_und = time.perf_counter()
+        _undistort(distorted / "sparse" / "0", src_dir, out, distorted / "_undistort", cfg, cancellation_token)
+        attempt.phases["undistort"] = time.perf_counter() - t_und
 
     placed = {im.name for im in rec.images.values() if im.has_pose}
     unregistered = [n for n in names if n not in placed]
+    if others:
+        warnings.append(
+            f"the images formed {len(others) + 1} separate models that share no matches: the largest "
+            f"({registered} images) is used, the others ("
+            + ", ".join(f"{m.registered} images: {_name_range(m.images)}" for m in others)
+            + ") are left out and kept in distorted/sparse/1.. for separate processing. Photos must overlap "
+            "along the whole survey (about 60 % between neighbours)."
+        )
     if registered < 0.5 * len(names):
         warnings.append(
             f"only {registered} of {len(names)} readable images were registered; the scene "
@@ -237,10 +275,12 @@ def run_sfm(
     summary = SfmSummary(
         registered=registered, total=total, mean_reproj_error_px=reproj, num_points3D=rec.num_points3D(),
         seconds=time.perf_counter() - t0, matcher=matcher, skipped=skipped, warnings=warnings,
-        unregistered=unregistered,
+        unregistered=unregistered, other_models=others, pairs_matched=attempt.stats[0],
+        loop_pairs=attempt.stats[1], phase_seconds={k: round(v, 3) for k, v in attempt.phases.items()},
     )  # fmt: skip
-    log.info("sfm: registered %d/%d, %d points, reprojection error %.3f px, %.1f s", registered, total,
-             summary.num_points3D, reproj, summary.seconds)  # fmt: skip
+    log.info("sfm: registered %d/%d, %d points, reprojection error %.3f px, %d pairs (%d loop), %.1f s (%s)",
+             registered, total, summary.num_points3D, reproj, summary.pairs_matched, summary.loop_pairs,
+             summary.seconds, ", ".join(f"{k} {v:.1f}" for k, v in summary.phase_seconds.items()))  # fmt: skip
     for w in warnings:
         log.warning("sfm: %s", w)
     return summary
@@ -317,9 +357,18 @@ class _Attempt:
     cfg: SfmConfig
     token: Any
     skipped: list[tuple[str, str]]
+    phases: dict[str, float] = field(default_factory=dict)  # seconds per phase, summed over attempts
+    stats: tuple[int, int] = (0, 0)  # (verified pairs, loop pairs) of the last attempt's database
 
-    def run(self, db_path: Path, feature_dir: Path, distorted: Path, images_dir: Path) -> tuple[Any, list[str]]:
-        """(the largest model, the names that were read); raises NoModelError / TooFewRegisteredError."""
+    def _timed(self, phase: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        t = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            self.phases[phase] = self.phases.get(phase, 0.0) + time.perf_counter() - t
+
+    def run(self, db_path: Path, feature_dir: Path, distorted: Path, images_dir: Path) -> tuple[list, list[str]]:
+        """(the models, largest first; the names that were read); raises NoModelError / TooFewRegisteredError."""
         import pycolmap
 
         if db_path.exists():
@@ -331,9 +380,10 @@ class _Attempt:
         pycolmap.Database.open(str(db_path)).close()  # import_images needs an existing database
         pycolmap.import_images(db_path, feature_dir, camera_mode=self.camera_mode, image_names=names,
                                options=self.reader)
-        pycolmap.extract_features(
-            db_path, feature_dir, image_names=names, camera_mode=self.camera_mode, reader_options=self.reader,
-            extraction_options=self.ext, device=pycolmap.Device.cpu, cancellation_token=self.token,
+        self._timed(
+            "extract", pycolmap.extract_features, db_path, feature_dir, image_names=names,
+            camera_mode=self.camera_mode, reader_options=self.reader, extraction_options=self.ext,
+            device=pycolmap.Device.cpu, cancellation_token=self.token,
         )  # fmt: skip
         in_db = _db_image_names(db_path)
         for n in names:
@@ -342,7 +392,11 @@ class _Attempt:
         names = [n for n in names if n in in_db]
         if len(names) < MIN_IMAGES:
             raise TooFewImagesError(_too_few_msg(len(names), images_dir), skipped=self.skipped)
-        _match(db_path, self.matcher, self.cfg, self.token)
+        if self.matcher == "sequential" and self.cfg.loop_detection:
+            self._timed("vocab", build_vocab_tree, db_path, distorted / "vocab_tree.bin", self.cfg.num_threads,
+                        self.cfg.seed)
+        self._timed("match", _match, db_path, self.matcher, self.cfg, self.token, distorted / "vocab_tree.bin")
+        self.stats = _pair_stats(db_path, self.cfg.sequential_overlap)
         if _num_inlier_matches(db_path) == 0:
             raise NoModelError(
                 f"no two of the {len(names)} images in {images_dir} share enough features to be matched. "
@@ -350,21 +404,21 @@ class _Attempt:
                 f"very turbid water gives too few features.",
                 skipped=self.skipped,
             )
-        rec = _map(db_path, self.src_dir, distorted, self.cfg, self.token)
-        if rec is None:
+        recs = self._timed("map", _map, db_path, self.src_dir, distorted, self.cfg, self.token)
+        if not recs:
             raise NoModelError(
                 f"pycolmap could not start a 3D model from the {len(names)} images in {images_dir}: no "
                 f"pair of images with enough parallax. The camera must move between shots (identical or "
                 f"rotation-only photos cannot be triangulated).",
                 skipped=self.skipped,
             )
-        if rec.num_reg_images() < self.cfg.min_registered:
+        if recs[0].num_reg_images() < self.cfg.min_registered:
             raise TooFewRegisteredError(
-                f"only {rec.num_reg_images()} of {len(names)} images in {images_dir} could be placed in the 3D "
+                f"only {recs[0].num_reg_images()} of {len(names)} images in {images_dir} could be placed in the 3D "
                 f"model (at least {self.cfg.min_registered} needed). Check the overlap between consecutive photos.",
                 skipped=self.skipped,
             )
-        return rec, names
+        return recs, names
 
 
 def _stage_stretched(src_dir: Path, names: list[str], stage: Path) -> Path:
@@ -402,7 +456,49 @@ def _num_inlier_matches(db_path: Path) -> int:
         db.close()
 
 
-def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any) -> None:
+def _pair_stats(db_path: Path, overlap: int) -> tuple[int, int]:
+    """(image pairs with inliers, those of them the sequential window does not propose: loop pairs).
+
+    Image ids follow the sorted names, so the sequential matcher pairs ids ``d`` apart for ``d <= overlap`` and
+    (quadratic overlap) ``d = 2**k``; any other verified pair came from loop detection (or from exhaustive
+    matching across the survey)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+    finally:
+        db.close()
+    pairs = loops = 0
+    for pid, n in zip(pair_ids, inliers, strict=True):
+        if n <= 0:
+            continue
+        a, b = pycolmap.pair_id_to_image_pair(pid)
+        d = abs(int(a) - int(b))
+        pairs += 1
+        loops += d > overlap and d & (d - 1) != 0
+    return pairs, loops
+
+
+def _write_models(recs: list, sparse: Path) -> list[SubModel]:
+    """Write the models (largest first) to ``sparse/0, 1, ...``; the :class:`SubModel` records of all but the
+    first, which is the one used."""
+    others = []
+    for i, r in enumerate(recs):
+        d = sparse / str(i)
+        d.mkdir(parents=True)
+        r.write(str(d))
+        if i:
+            names = sorted(im.name for im in r.images.values() if im.has_pose)
+            others.append(SubModel(index=i, registered=r.num_reg_images(), images=names))
+    return others
+
+
+def _name_range(names: list[str]) -> str:
+    return names[0] if len(names) == 1 else f"{names[0]} .. {names[-1]}"
+
+
+def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: Path) -> None:
     import pycolmap
 
     mopts = pycolmap.FeatureMatchingOptions()
@@ -413,7 +509,11 @@ def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any) -> None:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = cfg.sequential_overlap
         pairing.num_threads = cfg.num_threads
-        pairing.loop_detection = False  # needs a vocabulary tree file we do not ship
+        pairing.loop_detection = cfg.loop_detection
+        if cfg.loop_detection:  # the tree run() built from this survey's descriptors (pipeline.sfm.loops)
+            pairing.vocab_tree_path = str(vocab_tree)
+            pairing.loop_detection_period = LOOP_PERIOD
+            pairing.loop_detection_num_images = LOOP_NUM_IMAGES
         pycolmap.match_sequential(db_path, matching_options=mopts, pairing_options=pairing,
                                   verification_options=verify, device=pycolmap.Device.cpu,
                                   cancellation_token=token)  # fmt: skip
@@ -422,8 +522,8 @@ def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any) -> None:
                                   device=pycolmap.Device.cpu, cancellation_token=token)  # fmt: skip
 
 
-def _map(db_path: Path, image_dir: Path, distorted: Path, cfg: SfmConfig, token: Any):
-    """Incremental mapping; the model with the most registered images, or None when there is none."""
+def _map(db_path: Path, image_dir: Path, distorted: Path, cfg: SfmConfig, token: Any) -> list:
+    """Incremental mapping: the models with registered images, largest first (ties: the first built)."""
     import pycolmap
 
     opts = pycolmap.IncrementalPipelineOptions()
@@ -439,13 +539,12 @@ def _map(db_path: Path, image_dir: Path, distorted: Path, cfg: SfmConfig, token:
         recs = pycolmap.incremental_mapping(db_path, image_dir, tmp, options=opts, cancellation_token=token)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    recs = [r for r in recs.values() if r.num_reg_images() > 0]
-    if not recs:
-        return None
+    recs = [recs[k] for k in sorted(recs) if recs[k].num_reg_images() > 0]
+    recs.sort(key=lambda r: -r.num_reg_images())  # stable: equal sizes keep the mapper's order
     if len(recs) > 1:
         log.info("sfm: %d separate models (%s images); keeping the largest", len(recs),
                  ", ".join(str(r.num_reg_images()) for r in recs))  # fmt: skip
-    return max(recs, key=lambda r: r.num_reg_images())
+    return recs
 
 
 def _undistort(model_dir: Path, image_dir: Path, out: Path, tmp: Path, cfg: SfmConfig, token: Any) -> None:
@@ -467,6 +566,7 @@ __all__ = [
     "NoModelError",
     "SfmError",
     "SfmSummary",
+    "SubModel",
     "TooFewImagesError",
     "TooFewRegisteredError",
     "choose_matcher",

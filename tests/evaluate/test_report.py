@@ -179,6 +179,8 @@ def test_report_says_what_happened(job, tmp_path):
     sfm = results["sfm"]
     assert r["sfm"]["registered"] == sfm["registered"] == 12 and r["sfm"]["total"] == 12
     assert r["sfm"]["matcher"] == sfm["matcher"] and r["sfm"]["mean_reproj_error_px"] == sfm["mean_reproj_error_px"]
+    assert r["sfm"]["outcome"] == "single" and r["sfm"]["other_models"] == [] and r["sfm"]["unregistered"] == []
+    assert r["sfm"]["pairs_matched"] == sfm["pairs_matched"] >= 11  # 12 views in one model: at least a chain
     text = JobLayout(job_dir).report_json.read_text()
     assert str(job_dir.parent) not in text and '"/' not in text  # no absolute path anywhere (options.source ...)
     html = JobLayout(job_dir).report_html.read_text()
