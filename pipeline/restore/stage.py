@@ -59,9 +59,10 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         per_view.append({"name": view.name, **stats, "seconds": round(time.perf_counter() - t0, 3)})
         ctx.on_progress("restore", (k + 1) / len(views), f"restored {k + 1}/{len(views)} photos")
     registered = {v.name for v in views}
+    split = _split_models(job)
     res = {"mode": model.mode, "restored": len(per_view), "max_gain": opts.max_gain, "colour_space": model.colour_space,
            "format": opts.restore_format, "seconds": round(time.perf_counter() - t_all, 3), "views": per_view,
-           "not_restored": [{"name": n, "reason": "SfM did not register it (no pose)"}
+           "not_restored": [{"name": n, "reason": split.get(n, "SfM did not register it (no pose)")}
                             for n in sorted(photos - registered)]}
     if gt is not None:
         from pipeline.restore.truth import score_restored
@@ -70,3 +71,13 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     atomic_write_json(layout.restore_result, res)
     log.info("restored %d photos in %.1f s", len(per_view), res["seconds"])
     return res
+
+
+def _split_models(job: Path) -> dict[str, str]:
+    """Image name → why it has no pose, for the images SfM placed in a model other than the one trained (a survey
+    that broke into several models: ``SfmSummary.other_models``)."""
+    from pipeline.job.markers import read_marker
+
+    result = ((read_marker(job, "sfm") or {}).get("result") or {})
+    return {name: f"in SfM's separate model {m['index']} ({m['registered']} images); only the largest model was "
+                  f"reconstructed" for m in result.get("other_models") or [] for name in m.get("images", [])}
