@@ -137,6 +137,7 @@ def step_profile(job: Path, size: str, steps: int) -> dict:
     small = load_training_images(sub.views, cfg.downscale, cfg.colour_space)
     views = [dataclasses.replace(v, camera=v.camera.scaled(w / v.camera.width)) for v in sub.views]
     sub = dataclasses.replace(sub, views=views)
+    h, w = views[0].camera.height, views[0].camera.width  # SfM's undistorted size scaled (e.g. 319x239 -> 640x479)
     targets = [F.interpolate(t.permute(2, 0, 1)[None], size=(h, w), mode="bilinear")[0].permute(1, 2, 0)
                for t in small]
     cfg = dataclasses.replace(cfg, downscale=1, log_every=0, eval_every=0, checkpoint_every=0)
