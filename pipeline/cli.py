@@ -291,6 +291,13 @@ def cmd_train_classifier(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_warmup(args: argparse.Namespace) -> int:
+    from pipeline.splat.warmup import compile_kernels
+
+    print(json.dumps(compile_kernels()))
+    return 0
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     from service.embedded import serve
 
@@ -412,6 +419,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--only", default="", help="comma-separated row names to run (default: the whole set)")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_ablate)
+
+    s = sub.add_parser("warmup", help="compile the CPU rasterizer's numba kernels into their cache (a fresh "
+                                      "install's first job otherwise spends 1-3 minutes on it)")
+    s.set_defaults(func=cmd_warmup)
 
     from service.client.cli import add_client_commands
 

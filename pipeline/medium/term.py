@@ -22,6 +22,7 @@ from pipeline.config import MediumConfig
 from pipeline.medium.estimate import measure_water
 from pipeline.medium.losses import LossWeights, loss_terms
 from pipeline.medium.model import Medium, MediumOutput
+from pipeline.profiling import section
 from pipeline.scene.records import Scene, View, ray_length_factor, view_ranges
 from pipeline.train.quality import view_point_ranges
 from pipeline.water.controller import medium_start_iteration
@@ -217,7 +218,8 @@ class MediumTerm:
 
     def losses(self, view_index: int, J: Tensor, alpha: Tensor, depth: Tensor, target: Tensor) -> dict[str, Tensor]:
         """Eq. 13's weighted terms for one view (their sum is L_total)."""
-        out, D = self.apply(view_index, J, alpha, depth)
+        with section("losses: medium nets fwd"):
+            out, D = self.apply(view_index, J, alpha, depth)
         with torch.no_grad():  # running mean over views of eq. 5's effective coefficient, for the report
             b = out.beta_eff.detach()
             self.beta_eff_mean = b if self.beta_eff_mean is None else 0.95 * self.beta_eff_mean + 0.05 * b

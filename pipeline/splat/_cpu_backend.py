@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pipeline.profiling import section
 from pipeline.splat._constants import CPU_TILE
 from pipeline.splat._torch_ref import alpha_thresholds
 
@@ -93,7 +94,7 @@ class _Project(torch.autograd.Function):
         keys = torch.empty(C, N, dtype=torch.float64)
         deg = -1 if sh_degree is None else sh_degree
         colors = torch.empty(C, N if deg >= 0 else 0, 3, **f32)
-        with _dynamic_schedule():
+        with _dynamic_schedule(), section("raster: project fwd"):
             pk.project_fwd(
                 _np(means), _np(quats), _np(scales), _np(opacities), _np(coeffs), deg, _np(viewmats), _np(Ks),
                 width, height, eps2d, near_plane, far_plane,
@@ -117,7 +118,7 @@ class _Project(torch.autograd.Function):
         f32 = dict(dtype=torch.float32)
         v_means, v_quats, v_scales = torch.empty(N, 3, **f32), torch.empty(N, 4, **f32), torch.empty(N, 3, **f32)
         v_coeffs = torch.empty_like(coeffs)
-        with _dynamic_schedule():
+        with _dynamic_schedule(), section("raster: project bwd"):
             pk.project_bwd(
                 _np(means), _np(quats), _np(scales), _np(coeffs), deg, _np(viewmats), _np(Ks), width, height, eps2d,
                 _np(radii), grad_or_zeros(v_means2d, (C, N, 2)), grad_or_zeros(v_conics, (C, N, 3)),
@@ -137,6 +138,12 @@ class _Raster(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, backgrounds, radii, depth_keys, width, height, absgrad):
+        with section("raster: composite fwd"):
+            return _Raster._forward(ctx, means2d, conics, opacities, features, backgrounds, radii, depth_keys,
+                                    width, height, absgrad)  # fmt: skip
+
+    @staticmethod
+    def _forward(ctx, means2d, conics, opacities, features, backgrounds, radii, depth_keys, width, height, absgrad):
         # means2d [C, N, 2], conics [C, N, 3], opacities [N], features [C, N, F], backgrounds [C, F],
         # radii [C, N, 2] int32, depth_keys [C, N] float64
         _, rk = _kernels()
@@ -148,7 +155,7 @@ class _Raster(torch.autograd.Function):
         feats = _pad_channels(features.detach(), groups * NF).reshape(C, N, groups, NF)
         bgs = _pad_channels(backgrounds.detach(), groups * NF).reshape(C, groups, NF)
         thresholds = alpha_thresholds(opacities)  # the reference's exact float32 thresholds
-        with _dynamic_schedule():
+        with _dynamic_schedule(), section("raster: bin (in composite fwd)"):
             rows, tile_offsets, items, pair_item = rk.bin_and_pack(
                 _np(means2d), _np(conics), _np(opacities), _np(thresholds), _np(feats[:, :, 0]), _np(radii),
                 _np(depth_keys), width, height, 4 * numba.get_num_threads(),
@@ -174,6 +181,11 @@ class _Raster(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_out, v_alpha):
+        with section("raster: composite bwd"):
+            return _Raster._backward(ctx, v_out, v_alpha)
+
+    @staticmethod
+    def _backward(ctx, v_out, v_alpha):
         _, rk = _kernels()
 
         means2d, out_t = ctx.saved_tensors

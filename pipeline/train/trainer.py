@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from pipeline.config import TrainConfig, from_dict, to_dict
 from pipeline.job.layout import CHECKPOINT_NAME
 from pipeline.medium.term import MediumTerm
+from pipeline.profiling import section
 from pipeline.scene.records import Scene, View
 from pipeline.splat.densify import Densifier
 from pipeline.splat.gaussians import GAUSSIAN_KEYS
@@ -161,23 +162,30 @@ class Trainer:
         it = self.iteration + 1
         self.optimizers["means"].param_groups[0]["lr"] = means_lr(self.cfg, self.extent, it)
         i, sh_degree = self.next_view(), min(active_sh_degree(self.cfg, it), self.max_sh_degree)
-        out = self.render(i, sh_degree, "RGB+ED" if self.medium_on(it) else "RGB")
-        self.densifier.pre_backward(self.gaussians, self.optimizers, it, out.info)
-        losses = self.compute_losses(out, i)
-        loss = sum(losses.values())
-        terms = {k: float(v.detach()) for k, v in losses.items()}
+        with section("render"):
+            out = self.render(i, sh_degree, "RGB+ED" if self.medium_on(it) else "RGB")
+        with section("densify"):
+            self.densifier.pre_backward(self.gaussians, self.optimizers, it, out.info)
+        with section("losses"):
+            losses = self.compute_losses(out, i)
+            loss = sum(losses.values())
+            terms = {k: float(v.detach()) for k, v in losses.items()}
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite loss at iteration {it}: {terms}")
-        loss.backward()
-        for opt in self.optimizers.values():
-            opt.step()
-            opt.zero_grad(set_to_none=True)
+        with section("backward"):
+            loss.backward()
+        with section("optimizer"):
+            for opt in self.optimizers.values():
+                opt.step()
+                opt.zero_grad(set_to_none=True)
+            if self.medium is not None:
+                self.medium.step()
         if self.medium is not None:
-            self.medium.step()
             grad = out.info["means2d"].grad
             if grad is not None:  # the photo's gradients are A times the scene's: densify on the scene's scale
                 grad.mul_(self.medium.densify_gain(i))
-        event = self.densifier.post_backward(self.gaussians, self.optimizers, it, out.info)
+        with section("densify"):
+            event = self.densifier.post_backward(self.gaussians, self.optimizers, it, out.info)
         self.iteration = it
         metrics = {"loss": float(loss.detach()), **terms, "n_gaussians": float(len(self.gaussians["means"])),
                    "sh_degree": float(sh_degree)}  # fmt: skip
@@ -193,10 +201,12 @@ class Trainer:
             if should_cancel is not None and should_cancel():
                 raise TrainingCancelled(self.iteration)
             t0 = time.perf_counter()
-            metrics = self.step()
+            with section("step"):
+                metrics = self.step()
             self.elapsed_s += time.perf_counter() - t0
-            for hook in hooks:
-                hook(self, metrics)
+            with section("hooks"):
+                for hook in hooks:
+                    hook(self, metrics)
         return metrics
 
     # -- state --
