@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -16,7 +17,7 @@ from pipeline.scene.records import Camera, Scene, View
 from pipeline.scene.split import split_views
 from pipeline.synth.procedural import generate_scene
 from pipeline.train.budget import MIN_GAUSSIANS, scene_budget
-from pipeline.train.probe import ModeScore, ProbeConfig, decide, holdout_split
+from pipeline.train.probe import ModeScore, ProbeConfig, common_cover, decide, holdout_split
 from pipeline.train.resolve import resolve_train_config
 from pipeline.train.stage import select_mode
 from pipeline.water import classify
@@ -47,6 +48,37 @@ def test_rule_picks_the_simplest_mode_the_scene_needs():
         mode, reason = decide({"3dgs": _score(plain), "homogeneous": _score(homo, 0.29),
                                "dualphys": _score(dual, 0.29)}, cfg)
         assert mode == "homogeneous", reason
+
+
+def test_rule_without_cover_rests_on_the_measured_water():
+    """Held-back views the fitted views barely reach (the procedural survey's forward pass: 0 % covered): every
+    PSNR is +inf and the learned water NaN. That race decides nothing; the sparse points' water does."""
+    cfg = ProbeConfig(min_effect=0.1, min_covered=0.05)
+
+    def blind(effect=None, measured=None):
+        return ModeScore(psnr=float("inf"), seconds=1.0, covered=0.0, effect=effect, measured_effect=measured)
+
+    nan = float("nan")
+    mode, reason = decide({"3dgs": blind(), "homogeneous": blind(nan, 0.3), "dualphys": blind(nan, 0.3)}, cfg)
+    assert mode == "homogeneous" and "inconclusive" in reason and "0.300" in reason
+    mode, reason = decide({"3dgs": blind(), "homogeneous": blind(nan, 0.02), "dualphys": blind(nan, 0.02)}, cfg)
+    assert mode == "3dgs" and "do not measure water" in reason
+    # 4 % covered is still too little; 6 % is a race
+    few = {m: dataclasses.replace(_score(p, e), covered=0.04) for m, p, e in
+           (("3dgs", 25.0, None), ("homogeneous", 20.0, 0.3), ("dualphys", 20.0, 0.3))}
+    assert "inconclusive" in decide(few, cfg)[1]
+    few = {m: dataclasses.replace(s, covered=0.06) for m, s in few.items()}
+    assert decide(few, cfg)[0] == "3dgs"
+
+
+def test_common_cover_needs_every_mode():
+    class Out:
+        def __init__(self, a):
+            self.alpha = np.asarray(a, float)
+
+    outs = {"3dgs": [Out([[0.99, 0.6, 0.2]])], "homogeneous": [Out([[0.97, 0.96, 0.9]])]}
+    assert common_cover(outs, ("3dgs", "homogeneous"), 0.95)[0].tolist() == [[True, False, False]]
+    assert common_cover(outs, ("3dgs", "homogeneous"), 0.5)[0].tolist() == [[True, True, False]]
 
 
 def _view(name: str, z: float) -> View:
