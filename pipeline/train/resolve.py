@@ -53,9 +53,10 @@ def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] 
       the iterations and the Gaussian cap grow with the views; None or up to 24 views: the preset as it is).
       ``opts.iterations`` wins over the rule. A run of another length than the preset's is: the
       30k schedule (densification, SH warm-up) compressed to that many iterations, the preset's Gaussian cap
-      kept (fast 100k, balanced 300k, paper none) and its checkpoint cadence scaled with the run (as many
-      checkpoints per run: fast every 1/6, balanced 1/10, paper 1/15). ``--preset fast --iterations 3000`` is
-      ``--preset fast``. (It used to be a 300k cap and a checkpoint every fifth whatever the preset.)
+      (fast 100k, balanced 300k, paper none; x views / 24 above 24 views) and its checkpoint cadence scaled
+      with the run (as many checkpoints per run: fast every 1/6, balanced 1/10, paper 1/15).
+      ``--preset fast --iterations 3000`` is ``--preset fast``. (It used to be a 300k cap and a checkpoint
+      every fifth whatever the preset.)
     - mode: ``selection["chosen"]`` when the probe has chosen, else ``opts.mode``; mode "auto" without a
       selection is the probe's base (:data:`PROBE_BASE_MODE`);
     - with a ``selection`` (``pipeline.train.probe.select_for_job``): its budget's SH degree and Gaussian cap;

@@ -21,8 +21,8 @@ resolution (graphdeco's 30k serves 0.3 and 1.6 Mpx alike); the pixels set the Ga
 
 Densification: refine start/stop scale with the run (``DensifyConfig.scaled``); ``refine_every`` stays the
 preset's 100 (the gradient it averages is a mean over the steps that saw each Gaussian, unbiased whatever the
-window; a window of W steps gives a Gaussian seen by k of V views about W k / V samples, >= 3 at the
-survey sizes measured); ``reset_every`` scales with the run and stays >= 10 refinements.
+window; a window of W steps gives a Gaussian seen by k of V views about W k / V samples: ~6 at 300 frames with
+the generator's k ≈ 16, docs/DECISIONS.md); ``reset_every`` scales with the run and stays >= 10 refinements.
 """
 
 from __future__ import annotations
