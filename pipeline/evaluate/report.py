@@ -115,6 +115,7 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "preset": options.get("preset", ""),
         "selection": selection_of(job, options, ev["mode"]),
         "quality": quality_of(train),
+        "schedule": train.get("schedule"),  # None for jobs trained before schedules followed the survey
         "metrics": ev["metrics"],
         "restoration": restoration,
         "timings": timings,

@@ -144,6 +144,22 @@ def _split(sfm: dict) -> str:
             f"{parts}.</p>")
 
 
+def _schedule(s: dict | None) -> str:
+    """How the run's length and budget followed the survey (``pipeline.train.schedule``)."""
+    if not s:
+        return ""
+    length = ("set by --iterations (the rule would scale the preset by "
+              f"{fmt(s['factor'])})" if s["explicit_iterations"] else f"the preset x {fmt(s['factor'])}")
+    cap = fmt(s["max_gaussians"]) if s["max_gaussians"] else "none"
+    medium = f"; the water model starts after iteration {fmt(s['medium_start'])}" if s["medium_start"] else ""
+    return (f"<h2>Schedule</h2><p>{fmt(s['views'])} views ({fmt(s['train_views'])} trained on) at "
+            f"{fmt(s['width'])}x{fmt(s['height'])}: {fmt(s['pixels'])} training pixels. Rule: "
+            f"<code>{escape(s['rule'])}</code>. <b>{fmt(s['iterations'])} iterations</b>, {length}: "
+            f"{fmt(s['passes'], 1)} passes over the training views. Densification every {fmt(s['refine_every'])} "
+            f"iterations from {fmt(s['refine_start'])} to {fmt(s['refine_stop'])}, opacity reset every "
+            f"{fmt(s['reset_every'])}; Gaussian budget {cap}{medium}.</p>")
+
+
 def _selection(r: dict) -> str:
     """The mode decision with the water-type decision beside it, and what the mode means for restoration."""
     sel, w = r["selection"], r["water"]
@@ -300,7 +316,7 @@ def render_html(r: dict, pics: Pictures) -> str:
     parts = [f"<h1>dualphys report: {escape(r['job']['name'])}</h1>",
              f"<p class=muted>created {escape(r['created_at'])}; report schema {r['schema_version']}</p>",
              _quality(r.get("quality")),
-             _kpis(r), _inputs(r), _selection(r), _restored_photos(r, pics),
+             _kpis(r), _inputs(r), _selection(r), _schedule(r.get("schedule")), _restored_photos(r, pics),
              "<h2>Held-out views</h2>"
              f"<p class=muted>{t['n_views']} views (every 8th by name), {escape(t['compared'])}; PSNR of the pooled "
              f"MSE, SSIM with an 11x11 Gaussian window. LPIPS: {escape(t['lpips_reason'] or 'LPIPS-VGG')}.</p>",

@@ -23,7 +23,7 @@ from pipeline.medium.estimate import measure_water
 from pipeline.medium.losses import LossWeights, loss_terms
 from pipeline.medium.model import Medium, MediumOutput
 from pipeline.profiling import section
-from pipeline.scene.records import Scene, View, ray_length_factor, view_ranges
+from pipeline.scene.records import Camera, Scene, View, ray_length_factor, view_ranges
 from pipeline.train.quality import view_point_ranges
 from pipeline.water.controller import medium_start_iteration
 
@@ -178,8 +178,12 @@ class MediumTerm:
                 init = {"init_beta": est.beta_D, "init_beta_b": est.beta_B, "init_binf": est.B_inf}
         self.medium = Medium.from_config(mode, cfg, self.depth_scale, **init).to(device)
         self.medium.water_factor.fill_(cfg.water_factor)
-        self.ray = [torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32, device=device)[None, None]
-                    for v in views]  # per view [1, 1, H, W]
+        rays: dict[Camera, Tensor] = {}  # one map per camera, shared by its views (a survey has one camera:
+        for v in views:                 # 300 views' own copies at 640x480 were 369 MB)
+            if v.camera not in rays:
+                rays[v.camera] = torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32,
+                                                 device=device)[None, None]
+        self.ray = [rays[v.camera] for v in views]  # per view [1, 1, H, W], read only
         self.surface = [surface_pixels(scene, v, device) for v in views]  # per view: (pixels [K], ranges [K])
         maps = [point_range_map(v, *s) for v, s in zip(views, self.surface)]
         self.range_maps = [m.range for m in maps]  # per view [1, 1, h, w]

@@ -28,6 +28,7 @@ from pipeline.train.budget import pixel_budget
 from pipeline.train.checkpoint import load_checkpoint
 from pipeline.train.quality import assess_state
 from pipeline.train.setup import prepare_images
+from pipeline.train.targets import AsNumpy
 from pipeline.train.trainer import TrainResult, train
 
 log = logging.getLogger(__name__)
@@ -69,7 +70,7 @@ def _assess(ckpt: Path, scene: Scene, images: Sequence, cfg: TrainConfig) -> dic
     state = load_checkpoint(ckpt)
     views, targets = prepare_images(scene.views, images, cfg.downscale, torch.device("cpu"))
     return assess_state(state, scene, views, gaussian_budget(views, cfg.densify.max_gaussians), cfg.backend,
-                        [t.numpy() for t in targets])
+                        AsNumpy(targets))  # one view made float at a time
 
 
 def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_dir: str | Path, *,

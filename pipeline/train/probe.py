@@ -240,6 +240,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
     """Probe ``modes`` on the training views of ``scene`` (``images[i]`` belongs to ``scene.views[i]``) and
     decide. ``base`` supplies the seed, backend and medium settings (the water decision applied)."""
     from pipeline.train.setup import prepare_images
+    from pipeline.train.targets import take
     from pipeline.train.trainer import Trainer
 
     cfg = cfg or ProbeConfig()
@@ -248,9 +249,9 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
     fit, held = holdout_split(scene.views, scene.points, cfg.holdout_fraction)
     width = scene.views[0].camera.width
     fit_scene = scene.subset([scene.views[i] for i in fit])  # keeps the points' tracks
-    fit_images = [images[i] for i in fit]
+    fit_images = take(images, fit)  # packed images stay packed
     cfg3 = probe_config(base, cfg, width, "3dgs")
-    held_views, held_targets = prepare_images([scene.views[i] for i in held], [images[i] for i in held],
+    held_views, held_targets = prepare_images([scene.views[i] for i in held], take(images, held),
                                               cfg3.downscale, torch.device(device))
     total_steps = cfg.warmup + cfg.iterations * len(modes)
     report(0.0, f"probe: warm-up on {len(fit)} views, {len(held)} held back")

@@ -19,6 +19,7 @@ from typing import Any
 from pipeline.config import MediumConfig, TrainConfig, rescheduled, train_preset
 from pipeline.job.options import JobOptions
 from pipeline.train.hooks import curve_every
+from pipeline.train.schedule import survey_cap, survey_iterations
 
 # Mode "auto" before its probe has chosen resolves to this: the probe's base, the mode whose medium section
 # carries the whole water decision (the probe sets each candidate's mode itself).
@@ -45,14 +46,17 @@ def training_downscale(opts: JobOptions, width: int) -> int:
 
 
 def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] | None,
-                         selection: Mapping[str, Any] | None) -> TrainConfig:
+                         selection: Mapping[str, Any] | None, views: int | None = None) -> TrainConfig:
     """The frozen TrainConfig a job trains with.
 
-    - schedule: the preset ``opts.preset``. ``opts.iterations`` changes the run's length, not the preset: the
+    - schedule: the preset ``opts.preset`` scaled to a survey of ``views`` views (``pipeline.train.schedule``:
+      the iterations and the Gaussian cap grow with the views; None or up to 24 views: the preset as it is).
+      ``opts.iterations`` wins over the rule. A run of another length than the preset's is: the
       30k schedule (densification, SH warm-up) compressed to that many iterations, the preset's Gaussian cap
-      kept (fast 100k, balanced 300k, paper none) and its checkpoint cadence scaled with the run (as many
-      checkpoints per run: fast every 1/6, balanced 1/10, paper 1/15). ``--preset fast --iterations 3000`` is
-      ``--preset fast``. (It used to be a 300k cap and a checkpoint every fifth whatever the preset.)
+      (fast 100k, balanced 300k, paper none; x views / 24 above 24 views) and its checkpoint cadence scaled
+      with the run (as many checkpoints per run: fast every 1/6, balanced 1/10, paper 1/15).
+      ``--preset fast --iterations 3000`` is ``--preset fast``. (It used to be a 300k cap and a checkpoint
+      every fifth whatever the preset.)
     - mode: ``selection["chosen"]`` when the probe has chosen, else ``opts.mode``; mode "auto" without a
       selection is the probe's base (:data:`PROBE_BASE_MODE`);
     - with a ``selection`` (``pipeline.train.probe.select_for_job``): its budget's SH degree and Gaussian cap;
@@ -61,10 +65,14 @@ def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] 
     - medium modes with a ``water`` decision: the controller's settings (:func:`medium_with_water`).
     """
     cfg = train_preset(opts.preset)  # also refuses an unknown preset name
-    if opts.iterations is not None:
-        every = max(1, round(cfg.checkpoint_every * opts.iterations / cfg.iterations))
+    iterations = opts.iterations
+    if iterations is None and views is not None:
+        iterations = survey_iterations(cfg.iterations, views)
+    cap = survey_cap(cfg.densify.max_gaussians, views) if views is not None else cfg.densify.max_gaussians
+    if iterations is not None and (iterations != cfg.iterations or cap != cfg.densify.max_gaussians):
+        every = max(1, round(cfg.checkpoint_every * iterations / cfg.iterations))
         every = every if cfg.checkpoint_every > 0 else 0  # a preset without periodic checkpoints keeps none
-        cfg = rescheduled(cfg, opts.iterations, checkpoint_every=every, max_gaussians=cfg.densify.max_gaussians)
+        cfg = rescheduled(cfg, iterations, checkpoint_every=every, max_gaussians=cap)
     mode = selection["chosen"] if selection is not None else opts.mode
     if mode == "auto":
         mode = PROBE_BASE_MODE

@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from pipeline.config import TrainConfig
 from pipeline.scene.records import Scene, View, scaled_view
 from pipeline.splat.gaussians import GAUSSIAN_KEYS, init_from_points, init_random
+from pipeline.train.targets import PackedImages, pack_image
 
 log = logging.getLogger(__name__)
 
@@ -43,52 +44,63 @@ def shrink_image(img: ImageLike, height: int, width: int, device: torch.device |
     return t.permute(1, 2, 0).contiguous()
 
 
-def load_training_images(views: Sequence[View], downscale: int, colour_space: str = "srgb") -> list[Tensor]:
-    """Each view's image file read one at a time and shrunk at once to the training size (``downscale``), so a
-    survey of full-resolution photos never sits in memory whole (a 27 MP frame is 324 MB as float32): peak is
-    one full-size image plus the training-size set. Exactly what :func:`prepare_images` makes of the full-size
-    images. ``colour_space`` "linear": each photo decoded to linear light (sRGB EOTF) before it is averaged down
-    (averaging is only physical in linear light). [h, w, 3] float32 each."""
+def load_training_images(views: Sequence[View], downscale: int, colour_space: str = "srgb") -> PackedImages:
+    """Each view's image file read one at a time, shrunk at once to the training size (``downscale``) and
+    packed (:mod:`pipeline.train.targets`: uint8 when lossless, else uint16), so a survey of full-resolution
+    photos never sits in memory whole (a 27 MP frame is 324 MB as float32), nor the training-size set as float:
+    peak is one full-size image plus the packed set. Unpacked, exactly what :func:`prepare_images` makes of
+    the full-size images when they are 8-bit at the training size; else within ``UINT16_TOLERANCE``.
+    ``colour_space`` "linear": each photo decoded to linear light (sRGB EOTF) before it is averaged down
+    (averaging is only physical in linear light). Item i is [h, w, 3] float32."""
     from pipeline.scene.colour import srgb_to_linear
     from pipeline.scene.loader import load_view_image
 
     if colour_space not in ("srgb", "linear"):
         raise ValueError(f"unknown colour space {colour_space!r}")
-    out = []
-    for view in views:
-        cam = scaled_view(view, downscale).camera
-        img = load_view_image(view)
-        if colour_space == "linear":
-            img = srgb_to_linear(img).astype(np.float32)
-        out.append(shrink_image(img, cam.height, cam.width))
-    return out
+
+    def shrunk():
+        for view in views:
+            cam = scaled_view(view, downscale).camera
+            img = load_view_image(view)
+            if colour_space == "linear":
+                img = srgb_to_linear(img).astype(np.float32)
+            yield shrink_image(img, cam.height, cam.width)
+
+    return PackedImages.pack(shrunk())
 
 
 def prepare_images(
     views: Sequence[View], images: Sequence[ImageLike], downscale: int, device: torch.device
-) -> tuple[list[View], list[Tensor]]:
+) -> tuple[list[View], Sequence[Tensor]]:
     """Check images against their cameras and shrink both by ``downscale`` (area averaging).
     Images may also come already shrunk by an integer up to ``downscale`` (:func:`load_training_images` at the
     job's training size, which the mode probe shrinks further).
-    Returns the (rescaled) views and float32 targets [H, W, 3] on ``device``."""
+    Returns the (rescaled) views and float32 targets [H, W, 3] on ``device``: a list, or, when ``images`` are
+    :class:`~pipeline.train.targets.PackedImages`, packed images again (made float one view at a time)."""
     if len(views) != len(images):
         raise ValueError(f"{len(views)} views but {len(images)} images")
     if downscale < 1:
         raise ValueError(f"downscale must be >= 1, got {downscale}")
+    packed = isinstance(images, PackedImages)
     out_views, targets = [], []
-    for view, img in zip(views, images, strict=True):
-        shape = tuple(np.shape(img))
+    for k, view in enumerate(views):
+        shape = tuple(images.packed[k].shape) if packed else tuple(np.shape(images[k]))
         small = scaled_view(view, downscale)
         # the full size, or a copy shrunk by an integer up to this downscale (the train stage loads its images at
         # the job's training size; the mode probe trains these at its own, smaller, size)
-        cams = [scaled_view(view, k).camera for k in range(1, downscale + 1)]
+        cams = [scaled_view(view, d).camera for d in range(1, downscale + 1)]
         if shape not in {(c.height, c.width, 3) for c in cams}:
             full = (view.camera.height, view.camera.width, 3)
             raise ValueError(f"image of {view.name!r} is {shape}, camera says {full} (or a copy shrunk by an "
                              f"integer up to {downscale})")
         out_views.append(small)
-        targets.append(shrink_image(img, small.camera.height, small.camera.width, device))
-    return out_views, targets
+        if packed and shape == (small.camera.height, small.camera.width, 3):
+            targets.append(images.packed[k].to(device))  # already at the size: stays packed as it is
+        elif packed:
+            targets.append(pack_image(shrink_image(images[k], small.camera.height, small.camera.width)).to(device))
+        else:
+            targets.append(shrink_image(images[k], small.camera.height, small.camera.width, device))
+    return out_views, (PackedImages(targets, device) if packed else targets)
 
 
 def means_lr(cfg: TrainConfig, extent: float, iteration: int) -> float:

@@ -35,9 +35,9 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     images = load_training_images(train_scene.views, down, opts.colour_space)
     selection = None
     if opts.mode == "auto":  # the probe starts from the config resolved before its choice, at its views' width
-        base = resolve_train_config(opts, train_scene.views[0].camera.width, water, None)
+        base = resolve_train_config(opts, train_scene.views[0].camera.width, water, None, len(scene.views))
         selection = select_mode(job, base, train_scene, images, water, ctx)
-    cfg = resolve_train_config(opts, scene.views[0].camera.width, water, selection)
+    cfg = resolve_train_config(opts, scene.views[0].camera.width, water, selection, len(scene.views))
     atomic_write_json(layout.train_config, to_dict(cfg))
     start = PROBE_SHARE if selection is not None else 0.0
     from pipeline.train.hooks import curve_subset
@@ -58,9 +58,33 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
            "medium": res.medium,
            "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
            "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale,
-           "curve_views": [v.name for v in curve_views], "quality": quality, "recovery": recovery}
+           "curve_views": [v.name for v in curve_views], "quality": quality, "recovery": recovery,
+           "schedule": job_schedule(cfg, len(scene.views), train_scene, opts.iterations is not None)}
     atomic_write_json(layout.train_result, out)
     return out
+
+
+def job_schedule(cfg: TrainConfig, views: int, train_scene, explicit: bool) -> dict:
+    """The schedule block of train_result.json and report.json (``pipeline.train.schedule.Schedule``)."""
+    from dataclasses import replace
+
+    from pipeline.scene.records import scaled_view
+    from pipeline.train.schedule import RULE, Schedule, iterations_factor
+    from pipeline.water.controller import medium_start_iteration
+
+    cam = scaled_view(train_scene.views[0], cfg.downscale).camera
+    n = len(train_scene.views)
+    d = cfg.densify
+    medium = cfg.mode != "3dgs"
+    if medium:  # what the trainer does with the schedule in a medium mode
+        d = replace(d, refine_stop=round(d.refine_stop * d.medium_refine_factor))
+    return Schedule(views=views, train_views=n, width=cam.width, height=cam.height, pixels=n * cam.width * cam.height,
+                    rule=RULE, factor=round(iterations_factor(views), 4), iterations=cfg.iterations,
+                    explicit_iterations=explicit, passes=round(cfg.iterations / max(1, n), 2),
+                    refine_every=d.refine_every, refine_start=d.refine_start, refine_stop=d.refine_stop,
+                    reset_every=d.reset_every, max_gaussians=d.max_gaussians,
+                    medium_start=medium_start_iteration(cfg.iterations, cfg.medium.start_fraction) if medium else None
+                    ).to_json()
 
 
 PROBE_SHARE = 0.1  # of the train stage's progress that the mode probe reports (mode auto)
