@@ -188,6 +188,9 @@ class TrainConfig:
     checkpoint_every: int = 2000  # write latest checkpoint every this many its (0 = end/cancel only)
     eval_every: int = 0  # held-out PSNR every this many iterations (0 = at the end only)
     log_every: int = 100  # log a progress line every this many iterations
+    # torch.compile the step's loss graphs: "auto" for runs of >= 2,000 iterations when a C++ compiler is found,
+    # "on", "off" (pipeline.train.jit; the same losses, fused: numbers agree to float rounding)
+    compile_losses: str = "auto"
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     medium: MediumConfig = field(default_factory=MediumConfig)  # used by the homogeneous and dualphys modes
 

@@ -24,6 +24,7 @@ from pipeline.medium.losses import LossWeights, loss_terms
 from pipeline.medium.model import Medium, MediumOutput
 from pipeline.profiling import section
 from pipeline.scene.records import Camera, Scene, View, ray_length_factor, view_ranges
+from pipeline.train.jit import dynamic_rows, maybe_compiled
 from pipeline.train.quality import view_point_ranges
 from pipeline.water.controller import medium_start_iteration
 
@@ -157,11 +158,64 @@ def _nchw(x: Tensor) -> Tensor:  # [H, W, C] → [1, C, H, W]
     return x.permute(2, 0, 1)[None]
 
 
+class ViewEvidence(NamedTuple):
+    """The fixed tensors one view's losses read besides its render (made once per run by :class:`MediumTerm`)."""
+
+    ray: Tensor  # [1, 1, H, W] distance along the ray per unit of z-depth (ray_length_factor)
+    pixels: Tensor  # [K] flat indices of the pixels where the view saw sparse points (surface_pixels)
+    ranges: Tensor  # [K] the distance to the nearest such point
+    range_map: Tensor  # [1, 1, h, w] point_range_map's grid (empty: no point)
+    cover_map: Tensor  # [1, 1, h, w] cover_range_map's grid (empty: no point)
+
+
+def estimate_tensors(estimate: dict[str, Any] | None, device: torch.device) -> dict[str, Tensor] | None:
+    """The sparse-point water measurement (:meth:`MediumEstimate.to_dict`) as [1, 3, 1, 1] float32 tensors:
+    "beta_D", "beta_B", "B_inf" (None: no measurement)."""
+    if estimate is None:
+        return None
+    return {k: torch.as_tensor(estimate[k], dtype=torch.float32, device=device).reshape(1, 3, 1, 1)
+            for k in ("beta_D", "beta_B", "B_inf")}
+
+
+def water_anchor(beta_eff: Tensor, B: Tensor, D: Tensor, alpha: Tensor,
+                 estimate: dict[str, Tensor] | None) -> dict[str, tuple[Tensor, Tensor]] | None:
+    """The water the sparse points measured, as (model, measurement) pairs: the view's mean effective β_D
+    (including eq. 5's edge modulation, so the network can move attenuation around but not remove it) and
+    its alpha-weighted mean backscatter against the measured curve at the rendered ranges.
+    beta_eff [3]; B [N,3,H,W]; D, alpha [N,1,H,W]; estimate: "beta_D", "beta_B", "B_inf" as [1,3,1,1] (None: no
+    measurement, no anchor)."""
+    if estimate is None:
+        return None
+    dims = (0, 2, 3)
+    with torch.no_grad():  # the measured curve at the rendered ranges; 4x4-pooled, it only enters a mean
+        Dp, ap = F.avg_pool2d(D, 4, ceil_mode=True), F.avg_pool2d(alpha, 4, ceil_mode=True)
+        b_ref = (ap * estimate["B_inf"] * (1 - torch.exp(-estimate["beta_B"] * Dp))).mean(dims)
+    return {"attenuation": (beta_eff, estimate["beta_D"].flatten()), "backscatter": ((alpha * B).mean(dims), b_ref)}
+
+
+def view_losses(medium: Medium, J: Tensor, alpha: Tensor, depth: Tensor, target: Tensor, ev: ViewEvidence,
+                estimate: dict[str, Tensor] | None, depth_scale: float, weights: LossWeights, alpha_w: float,
+                beta_w: float, enabled: frozenset[str]) -> tuple[dict[str, Tensor], Tensor]:
+    """One view's medium and eq. 13's weighted terms: (terms, the view's effective β_D [3], detached).
+
+    J [H,W,3] premultiplied, alpha [H,W,1], z-depth [H,W,1], target [H,W,3]. Pure (no state changes), so
+    ``pipeline.train.jit`` may compile it; this eager function is the compiled graph's reference twin."""
+    D = _nchw(depth) * ev.ray
+    a = _nchw(alpha)
+    out = medium(_nchw(J), D, a)
+    beta = out.beta_eff.detach()
+    _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, a, depth_scale, weights,
+                             alpha_w, beta_w, enabled, anchor=water_anchor(out.beta_eff, out.B, D, a, estimate),
+                             surface=(ev.pixels, ev.ranges), range_map=ev.range_map,
+                             cover=cover_weight(ev.cover_map, beta))
+    return weighted, beta
+
+
 class MediumTerm:
     """Medium module + optimiser + losses for one training run."""
 
     def __init__(self, mode: str, cfg: MediumConfig, scene: Scene, views: Sequence[View],
-                 targets: Sequence[Tensor], total_iterations: int, device: torch.device):
+                 targets: Sequence[Tensor], total_iterations: int, device: torch.device, *, compiled: bool = False):
         self.cfg = cfg
         self.mode = mode
         self.depth_scale = scene_depth_scale(scene, views)
@@ -188,6 +242,11 @@ class MediumTerm:
         maps = [point_range_map(v, *s) for v, s in zip(views, self.surface)]
         self.range_maps = [m.range for m in maps]  # per view [1, 1, h, w]
         self.cover_maps = [cover_range_map(m, s[1]) for m, s in zip(maps, self.surface)]  # per view [1, 1, h, w]
+        self.evidence = [ViewEvidence(r, px, rg, rm, cm) for r, (px, rg), rm, cm
+                         in zip(self.ray, self.surface, self.range_maps, self.cover_maps)]
+        if compiled:  # every view's point count in one compiled graph (pipeline.train.jit)
+            for ev in self.evidence:
+                dynamic_rows(ev.pixels), dynamic_rows(ev.ranges)
         self.transmission = view_transmission(scene, views, init["init_beta"])  # per view: mean A at its range
         self.start = medium_start_iteration(total_iterations, cfg.start_fraction)  # the controller's rule
         # Short runs scale the schedule: the paper's rates are for ~20k medium iterations.
@@ -200,6 +259,8 @@ class MediumTerm:
             {"params": scat, "lr": cfg.lr_scattering * boost, "name": "scattering"},
         ], eps=1e-15)
         self.weights = LossWeights(**cfg.loss_weights) if cfg.loss_weights else LossWeights()
+        self._estimate_t = estimate_tensors(self.estimate, device)
+        self._view_losses = maybe_compiled(view_losses, compiled)
         log.info("medium %s: depth scale %.3f, starts at iteration %d, lr boost %.1f", mode, self.depth_scale,
                  self.start, boost)
 
@@ -221,36 +282,15 @@ class MediumTerm:
         return self.medium(_nchw(J), D, _nchw(alpha)), D
 
     def losses(self, view_index: int, J: Tensor, alpha: Tensor, depth: Tensor, target: Tensor) -> dict[str, Tensor]:
-        """Eq. 13's weighted terms for one view (their sum is L_total)."""
-        with section("losses: medium nets fwd"):
-            out, D = self.apply(view_index, J, alpha, depth)
+        """Eq. 13's weighted terms for one view (their sum is L_total): :func:`view_losses`, compiled when the
+        run asked for it (``pipeline.train.jit``)."""
+        with section("losses: medium nets + terms fwd"):
+            weighted, beta_eff = self._view_losses(
+                self.medium, J, alpha, depth, target, self.evidence[view_index], self._estimate_t,
+                self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, frozenset(self.cfg.losses))
         with torch.no_grad():  # running mean over views of eq. 5's effective coefficient, for the report
-            b = out.beta_eff.detach()
-            self.beta_eff_mean = b if self.beta_eff_mean is None else 0.95 * self.beta_eff_mean + 0.05 * b
-        enabled = frozenset(self.cfg.losses)
-        _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha),
-                                 self.depth_scale, self.weights, self.cfg.alpha_w, self.cfg.beta_w, enabled,
-                                 anchor=self._anchor(out, D, _nchw(alpha)), surface=self.surface[view_index],
-                                 range_map=self.range_maps[view_index],
-                                 cover=cover_weight(self.cover_maps[view_index], out.beta_eff.detach()))
+            self.beta_eff_mean = beta_eff if self.beta_eff_mean is None else 0.95 * self.beta_eff_mean + 0.05 * beta_eff
         return weighted
-
-    def _anchor(self, out: MediumOutput, D: Tensor, alpha: Tensor) -> dict[str, tuple[Tensor, Tensor]] | None:
-        """The water the sparse points measured, as (model, measurement) pairs: the view's mean effective β_D
-        (including eq. 5's edge modulation, so the network can move attenuation around but not remove it) and
-        its alpha-weighted mean backscatter against the measured curve at the rendered ranges."""
-        if self.estimate is None:
-            return None
-
-        def t(key: str) -> Tensor:
-            return torch.as_tensor(self.estimate[key], dtype=D.dtype, device=D.device).reshape(1, 3, 1, 1)  # type: ignore[index]
-
-        dims = (0, 2, 3)
-        with torch.no_grad():  # the measured curve at the rendered ranges; 4x4-pooled, it only enters a mean
-            Dp, ap = F.avg_pool2d(D, 4, ceil_mode=True), F.avg_pool2d(alpha, 4, ceil_mode=True)
-            b_ref = (ap * t("B_inf") * (1 - torch.exp(-t("beta_B") * Dp))).mean(dims)
-        return {"attenuation": (out.beta_eff, t("beta_D").flatten()),
-                "backscatter": ((alpha * out.B).mean(dims), b_ref)}
 
     def step(self) -> None:
         self.optimizer.step()
@@ -277,4 +317,5 @@ class MediumTerm:
         self.optimizer.load_state_dict(sd["optimizer"])
         self.depth_scale = float(sd["depth_scale"])
         self.estimate = sd.get("estimate")
+        self._estimate_t = estimate_tensors(self.estimate, self.medium.depth_scale.device)
         self.beta_eff_mean = sd.get("beta_eff_mean")

@@ -10,8 +10,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from pipeline.profiling import section
-
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
 _C1 = 0.01**2  # (k1 * L)^2 with L = 1
@@ -73,6 +71,5 @@ def photometric_losses(render: Tensor, target: Tensor, ssim_weight: float, *,
     Each caller keeps its own w (``TrainConfig.ssim_weight`` before the medium starts, ``LossWeights.ssim_weight``
     in eq. 13's L_basic). [..., H, W, C] x2, or [N, C, H, W] x2 with ``channels_first`` -> {"l1": [], "dssim": []}"""
     hwc = (lambda x: x.permute(0, 2, 3, 1)) if channels_first else (lambda x: x)
-    with section("losses: ssim fwd"):
-        dssim = ssim_weight * (1.0 - ssim(hwc(render), hwc(target)))
-    return {"l1": (1.0 - ssim_weight) * l1(render, target), "dssim": dssim}
+    return {"l1": (1.0 - ssim_weight) * l1(render, target),
+            "dssim": ssim_weight * (1.0 - ssim(hwc(render), hwc(target)))}

@@ -34,6 +34,7 @@ from pipeline.splat.gaussians import GAUSSIAN_KEYS
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.train.hooks import Hook, ProgressFn, checkpoint_hook, eval_hook, log_hook, progress_hook
 from pipeline.train.image_losses import photometric_losses
+from pipeline.train.jit import maybe_compiled, should_compile
 from pipeline.train.render import RenderOutput, ViewOutputs, render_gaussians, render_outputs, view_tensors
 from pipeline.train.setup import (
     ImageLike,
@@ -60,7 +61,7 @@ RESET_RECOVERY_REFINES = 2  # medium modes: the last opacity reset is at least t
 #                             medium starts (docs/DECISIONS.md, "The water must not eat the scene")
 STATE_VERSION = 1
 # Config fields that do not change what is trained: a checkpoint differing only in these still resumes.
-_NON_SEMANTIC = {"log_every", "checkpoint_every", "eval_every"}
+_NON_SEMANTIC = {"log_every", "checkpoint_every", "eval_every", "compile_losses"}  # the same model either way
 
 
 class TrainingCancelled(RuntimeError):
@@ -107,13 +108,15 @@ class Trainer:
         self.densifier = Densifier(densify, scene_scale=self.extent)
         self.densifier.check(self.gaussians, self.optimizers)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)  # [3]
+        self.compiled = should_compile(cfg.compile_losses, cfg.iterations)  # the loss graphs (pipeline.train.jit)
+        self._photometric = maybe_compiled(photometric_losses, self.compiled)
         self.medium: MediumTerm | None = None
         self.max_sh_degree = cfg.sh_degree
         if cfg.mode != "3dgs":
             # J is rendered premultiplied over black; uncovered pixels see the water's veiling light instead.
             self.background = torch.zeros(3, device=self.device)
             self.medium = MediumTerm(cfg.mode, cfg.medium, scene, self.views, self.targets, cfg.iterations,
-                                     self.device)
+                                     self.device, compiled=self.compiled)
             self.max_sh_degree = min(cfg.sh_degree, cfg.medium.max_sh_degree)
             # Opacity resets only while J alone is fitted, with time to recover before the medium starts: once
             # the water is on, an uncovered pixel shows the veil, and a reset scene is not brought back.
@@ -146,7 +149,8 @@ class Trainer:
         if self.medium is not None and self.medium_on(self.iteration + 1):
             assert out.depth is not None
             return self.medium.losses(i, out.image, out.alpha, out.depth, self.targets[i])
-        return photometric_losses(out.image, self.targets[i], self.cfg.ssim_weight)
+        with section("losses: photometric fwd"):
+            return self._photometric(out.image, self.targets[i], self.cfg.ssim_weight)
 
     def outputs(self, view: View) -> ViewOutputs:
         """Everything the model renders for ``view`` (J, I, A, B, depth, alpha), through the medium once it is on."""

@@ -58,7 +58,7 @@ def test_profiled_steps_name_their_parts_and_train_the_same(tiny_scene):
                  "raster: composite fwd", "raster: composite bwd", "raster: project bwd"):
         assert sec[name + "#"] == 6, name
     assert sec["densify#"] == 12  # before and after backward
-    assert sec["losses: ssim fwd#"] == 6
+    assert sec["losses: photometric fwd#"] == 6
     inner = sum(sec[k] for k in ("render", "losses", "backward", "optimizer", "densify"))
     assert inner <= sec["step"]
     assert sec["raster: composite bwd"] + sec["raster: project bwd"] <= sec["backward"]
