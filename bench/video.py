@@ -7,6 +7,8 @@ reprojection error. Long by nature (the ray caster renders ~0.4 s a frame at 160
     python bench/video.py [--frames 160 --width 240 --height 180 --step 0.05] [--json]
     python bench/video.py --decode 1920x1080 --frames 300   # ingest alone on a camera-size video: seconds and
                                                             # peak memory (VmHWM of a child process)
+    python bench/video.py --truth --generate-only --out DIR   # DIR/scene/transect.mp4 with every frame's truth
+                                                            # beside it, for `dualphys run DIR/scene/transect.mp4`
 """
 
 from __future__ import annotations
@@ -91,6 +93,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="keep the video and job here (default: a temp folder)")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--decode", default=None, metavar="WxH", help="time ingest alone on a panning video this size")
+    ap.add_argument("--truth", action="store_true",
+                    help="write every frame's truth beside the video (OUT/scene/): a job on the video is scored")
+    ap.add_argument("--generate-only", action="store_true", help="stop once the video is written")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     if args.decode:
@@ -111,15 +116,19 @@ def main() -> None:
 
     torch.set_num_threads(1)  # the ray caster's torch ops: threads fight the other jobs on a shared machine
     root = args.out or Path(tempfile.mkdtemp(prefix="bench-video-"))
-    (root / "upload").mkdir(parents=True, exist_ok=True)
+    folder = root / ("scene" if args.truth else "upload")  # the truth makes the video's folder a generated scene
+    folder.mkdir(parents=True, exist_ok=True)
     cfg = VideoSynthConfig(scene=SynthConfig(width=args.width, height=args.height, supersample=1, views=80),
                            frames=args.frames, fps=args.fps, step=args.step)
     rows = {}
     t = time.perf_counter()
-    video = generate_video(cfg, root / "upload" / "transect.mp4")
+    video = generate_video(cfg, folder / "transect.mp4", truth=args.truth)
     rows["render+encode"] = time.perf_counter() - t
+    if args.generate_only:
+        print(f"wrote {video} ({video.stat().st_size} bytes) in {rows['render+encode']:.1f} s")
+        return
     t = time.perf_counter()
-    res = ingest(root / "upload", root / "job")
+    res = ingest(video, root / "job")  # the video alone: its folder may hold the truth's images
     rows["ingest"] = time.perf_counter() - t
     v = res.videos[0]
     t = time.perf_counter()

@@ -165,9 +165,9 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
     from pipeline.scene.loader import load_scene
     from pipeline.synth.ground_truth import load_ground_truth
 
-    gt = load_ground_truth(gt_root)
     layout = JobLayout(job)
     job_scene = load_scene(layout.scene)
+    gt = load_ground_truth(gt_root, [v.name for v in job_scene.views])
     sim = fit_similarity(job_scene, gt.scene)
     alignment = align_to_reference(job_scene, gt.scene)
     true_views = {v.name: v for v in gt.scene.views}
@@ -180,7 +180,7 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
     rendered = render_timed(model, views, backend)
     save_renders(rendered, layout.true_camera)
     clean = [gt.clean(v) for v in views]
-    photos = [load_view_image_from(gt.root / "images" / v.name, v) for v in views]
+    photos = [gt.photo(v) for v in views]
     train = json.loads(layout.train_result.read_text())
     restored = [(r.out.J, c) for r, c in zip(rendered, clean, strict=True)]
     unrestored = list(zip(photos, clean, strict=True))
@@ -229,13 +229,6 @@ def json_safe(obj: Any) -> Any:
     if isinstance(obj, list | tuple):
         return [json_safe(v) for v in obj]
     return obj
-
-
-def load_view_image_from(path: Path, view: View) -> np.ndarray:
-    """The image at ``path`` at ``view.camera``'s size."""
-    from pipeline.scene.loader import load_view_image
-
-    return load_view_image(View(view.name, view.camera, view.R, view.t, path))
 
 
 def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages: Sequence[str] = (),

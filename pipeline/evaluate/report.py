@@ -275,12 +275,11 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
     if rest is not None:  # the true cameras: photo, model, restored and truth share one geometry
         # the report names the ground truth without its server path; evaluate.json has the real one
         gt = load_ground_truth(((_read_json(layout.evaluate) or {}).get("restoration") or {}).get(
-            "ground_truth", rest["ground_truth"]))
+            "ground_truth", rest["ground_truth"]), rest["views"])
         true_views = {v.name: scaled_view(v, down) for v in gt.scene.views}
         for n in (n for n in names if n in rest["views"]):
             v, stem = true_views[n], Path(n).stem
-            photo = load_view_image(type(v)(v.name, v.camera, v.R, v.t, gt.root / "images" / n))
-            cells = [("photo", image_png(photo)),
+            cells = [("photo", image_png(gt.photo(v))),
                      ("model, with water", (layout.true_camera / "with_water" / f"{stem}.png").read_bytes()),
                      ("restored J", (layout.true_camera / "restored" / f"{stem}.png").read_bytes()),
                      ("ground truth J", image_png(gt.clean(v)))]

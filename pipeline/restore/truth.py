@@ -74,7 +74,7 @@ def score_restored(job: Path, gt_root: Path, views: Sequence[View], lenses: dict
     from pipeline.synth.ground_truth import FAR_DEPTH_M, load_ground_truth
 
     layout = JobLayout(job)
-    gt = load_ground_truth(gt_root)
+    gt = load_ground_truth(gt_root, [v.name for v in views])
     truth_names = {v.name for v in gt.scene.views}
     _, test = split_views(list(views))
     test_names = {v.name for v in test}

@@ -4,9 +4,13 @@ A generated scene folder holds ``images/`` (what the job ingests), ``clean/`` (t
 ``depth/*.npy`` (camera-space z in metres), ``sparse_gt/`` (the true cameras, metres) and ``water.json`` (the
 true β_D, β_B, B∞ and the generator's config: :data:`pipeline.synth.water.TRUE_WATER_FILE`, the scene's truth,
 unrelated to the classifier's decision in a job folder). A job finds it either through
-``JobOptions.ground_truth`` (the scene folder) or, when that is unset, because its source is a folder named
-``images`` inside such a scene.
+``JobOptions.ground_truth`` (the scene folder) or, when that is unset, because its source sits directly in such
+a scene: its ``images/`` folder, or a video there (a generated video's truth, :mod:`pipeline.synth.video_truth`).
 Nothing else counts as ground truth: a folder must carry the generator's ``water.json`` and ``clean/``.
+
+A job's view is matched to the true view with the same file stem (:func:`load_ground_truth` ``names``): ingest
+keeps a generated scene's names, but a video's keyframes are JPEGs (``transect_000123.jpg``) while the truth of
+that frame is ``transect_000123.png`` / ``.npy``. The truth's files are always ``<stem>.png`` and ``<stem>.npy``.
 
 A scene generated with lens distortion (``pipeline.synth.lens``) records images/, clean/, depth/ in the
 distorted geometry of the true RADIAL camera (sparse_gt/) and holds pinhole companions in ``pinhole/`` (images/,
@@ -20,8 +24,8 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,9 +51,15 @@ class GroundTruth:
     """A generated scene's truth."""
 
     root: Path  # the pinhole-geometry truth (images/, clean/, depth/): the scene folder, or its pinhole/
-    scene: Scene  # the true PINHOLE cameras (world in metres), views named as the images
+    scene: Scene  # the true PINHOLE cameras (world in metres), views named as the job names them (by stem)
     water: dict  # water.json: preset, beta_D, beta_B (1/m), B_inf, generator config
     scene_root: Path | None = None  # the generated scene folder (the recorded geometry); None = root
+
+    @staticmethod
+    def file(name: str, suffix: str = ".png") -> str:
+        """The truth's file for view ``name`` (a job's name or the truth's own): images/ and clean/ hold
+        ``<stem>.png``, depth/ ``<stem>.npy``."""
+        return f"{Path(name).stem}{suffix}"
 
     @property
     def original_root(self) -> Path:
@@ -61,23 +71,30 @@ class GroundTruth:
         PINHOLE; params in COLMAP order."""
         from pipeline.scene.colmap import lens_cameras
 
-        return lens_cameras(self.original_root / "sparse_gt")[name]
+        return lens_cameras(self.original_root / "sparse_gt")[self.file(name)]
 
     def clean_original(self, name: str) -> np.ndarray:
         """The true clean radiance of view ``name`` at full resolution in the recorded geometry.  # [H, W, 3]"""
-        return read_image(self.original_root / "clean" / name)
+        return read_image(self.original_root / "clean" / self.file(name))
 
     def depth_original(self, name: str) -> np.ndarray:
         """True camera-space z (metres) of view ``name`` at full resolution in the recorded geometry.  # [H, W]"""
-        return np.load(self.original_root / "depth" / f"{Path(name).stem}.npy")
+        return np.load(self.original_root / "depth" / self.file(name, ".npy"))
 
     def clean(self, view: View) -> np.ndarray:
         """The true clean radiance of ``view.name`` at ``view.camera``'s size (area-averaged).  # [h, w, 3]"""
-        return load_view_image(View(view.name, view.camera, view.R, view.t, self.root / "clean" / view.name))
+        path = self.root / "clean" / self.file(view.name)
+        return load_view_image(View(view.name, view.camera, view.R, view.t, path))
+
+    def photo(self, view: View) -> np.ndarray:
+        """The underwater image as generated (a video's frame before the codec) of ``view.name`` at
+        ``view.camera``'s size (area-averaged).  # [h, w, 3]"""
+        path = self.root / "images" / self.file(view.name)
+        return load_view_image(View(view.name, view.camera, view.R, view.t, path))
 
     def depth(self, view: View) -> np.ndarray:
         """True camera-space z (metres) of ``view.name`` at ``view.camera``'s size (area-averaged).  # [h, w]"""
-        z = np.load(self.root / "depth" / f"{Path(view.name).stem}.npy")
+        z = np.load(self.root / "depth" / self.file(view.name, ".npy"))
         return resize_area_to(z, (view.camera.height, view.camera.width))
 
     def seen_by(self, views: Sequence[View], others: Sequence[View]) -> list[np.ndarray]:
@@ -129,7 +146,10 @@ def is_generated_scene(root: str | Path) -> bool:
 
 def find_ground_truth(source: str | Path | None, explicit: str | Path | None = None) -> Path | None:
     """The ground-truth scene folder of a job: ``explicit`` if given (it must be a generated scene), else the
-    parent of a source folder named ``images`` when that parent is a generated scene, else None."""
+    folder the source sits in when the source is that generated scene's ``images/`` or a video in it (a generated
+    video's truth is written beside it), else None."""
+    from pipeline.ingest.video import is_video
+
     if explicit:
         if not is_generated_scene(explicit):
             raise GroundTruthError(f"ground truth {explicit} is not a generated scene folder ({TRUE_WATER_FILE} "
@@ -137,22 +157,45 @@ def find_ground_truth(source: str | Path | None, explicit: str | Path | None = N
         return Path(explicit)
     if source:
         src = Path(source)
-        if src.is_dir() and src.name == "images" and is_generated_scene(src.parent):
+        in_scene = (src.is_dir() and src.name == "images") or (src.is_file() and is_video(src))
+        if in_scene and is_generated_scene(src.parent):
             log.info("ground truth found next to the source: %s", src.parent)
             return src.parent
     return None
 
 
-def load_ground_truth(root: str | Path) -> GroundTruth:
-    """The truth of generated scene ``root``; a distorted scene's pinhole-geometry truth comes from pinhole/."""
+def load_ground_truth(root: str | Path, names: Iterable[str] = ()) -> GroundTruth:
+    """The truth of generated scene ``root``; a distorted scene's pinhole-geometry truth comes from pinhole/.
+    ``names``: the job's view names; a true view takes the job's name of the same stem, so the job's scene and
+    the truth's match by name (a video's ``transect_000123.jpg`` is the truth's ``transect_000123.png``)."""
     root = Path(root)
     if not is_generated_scene(root):
         raise GroundTruthError(f"{root} is not a generated scene folder")
     water = json.loads((root / TRUE_WATER_FILE).read_text())
     pinhole = root / PINHOLE_DIR
-    if pinhole.is_dir():
-        return GroundTruth(pinhole, load_scene(pinhole), water, scene_root=root)
-    return GroundTruth(root, load_scene(root), water, scene_root=root)
+    truth_root = pinhole if pinhole.is_dir() else root
+    scene = named_as(load_scene(truth_root), names)
+    return GroundTruth(truth_root, scene, water, scene_root=root)
 
 
-__all__ = ["GroundTruth", "GroundTruthError", "find_ground_truth", "is_generated_scene", "load_ground_truth"]
+def named_as(scene: Scene, names: Iterable[str]) -> Scene:
+    """``scene`` with each view renamed to the one of ``names`` that has its stem (views without one, or whose
+    stem two names share, keep their own name)."""
+    by_stem: dict[str, list[str]] = {}
+    for n in names:
+        by_stem.setdefault(Path(n).stem, []).append(n)
+    ambiguous = sorted(s for s, ns in by_stem.items() if len(ns) > 1)
+    if ambiguous:
+        log.warning("%d job image stems name two images each (e.g. %s): those views are matched only by their "
+                    "full name", len(ambiguous), by_stem[ambiguous[0]])
+
+    def name_of(name: str) -> str:
+        match = by_stem.get(Path(name).stem, [])
+        return match[0] if len(match) == 1 else name
+
+    sightings = None if scene.sightings is None else {name_of(k): v for k, v in scene.sightings.items()}
+    return replace(scene, views=[replace(v, name=name_of(v.name)) for v in scene.views], sightings=sightings)
+
+
+__all__ = ["GroundTruth", "GroundTruthError", "find_ground_truth", "is_generated_scene", "load_ground_truth",
+           "named_as"]

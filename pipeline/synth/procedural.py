@@ -230,9 +230,9 @@ def write_scene_files(out: Path, rendered, n_views: int, distortion: tuple[float
     per_view = math.ceil(n_points / n_views) if n_points > 0 and n_views > 0 else 0
     kept, kept_pin, pts, cols = [], [], [], []
     for sv, pin in rendered:
-        _write_views(out, [sv])
+        write_views(out, [sv])
         if pin is not None:
-            _write_views(out / PINHOLE_DIR, [pin])
+            write_views(out / PINHOLE_DIR, [pin])
             kept_pin.append(_depth_only(pin))
         if per_view:
             p, c = _sample_view_points(sv, per_view, rng, distortion)
@@ -257,19 +257,21 @@ def _depth_only(sv: SynthView) -> SynthView:
     return SynthView(sv.view, empty, sv.depth, empty)
 
 
-def _write_views(out: Path, views: list[SynthView]) -> None:
+def write_views(out: Path, views: list[SynthView]) -> None:
+    """Each view's images/ and clean/ (8-bit PNG named as the view) and depth/ (float32 .npy by its stem)."""
     from pipeline.scene.images import write_image  # OpenImageIO loads only when files are written
 
     for sub in ("images", "clean", "depth"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     for sv in views:
         stem = Path(sv.view.name).stem
-        write_image(out / "images" / sv.view.name, _to_u8(sv.image))
-        write_image(out / "clean" / sv.view.name, _to_u8(sv.J))
+        write_image(out / "images" / sv.view.name, to_u8(sv.image))
+        write_image(out / "clean" / sv.view.name, to_u8(sv.J))
         np.save(out / "depth" / f"{stem}.npy", sv.depth.astype(np.float32))
 
 
-def _to_u8(img: np.ndarray) -> np.ndarray:
+def to_u8(img: np.ndarray) -> np.ndarray:
+    """[0, 1] floats as 8-bit values, rounded (what images/ and clean/ hold)."""
     return np.round(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 

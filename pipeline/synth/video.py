@@ -5,7 +5,8 @@ with.
 Path (world: metres, z up): the camera looks straight down from ``scene.altitude`` and flies along +x at ``step``
 metres per frame, centred on the seabed the scene's world covers, with a slow sideways sway (±``sway`` m) and
 yaw (±4°) so that consecutive frames are not pure translations. Frames are rendered one at a time and encoded as
-they come (bounded memory).
+they come (bounded memory). With ``truth`` the folder of the video also gets every frame's truth (clean radiance,
+depth, true camera, water: :mod:`.video_truth`), so a job on the video is scored like one on a generated scene.
 """
 
 from __future__ import annotations
@@ -15,10 +16,14 @@ import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.config import SynthConfig
+
+if TYPE_CHECKING:  # the renderer (and torch) load only when frames are rendered: encode_video needs neither
+    from pipeline.synth.procedural import SynthView
 
 log = logging.getLogger(__name__)
 
@@ -50,11 +55,13 @@ def transect_poses(cfg: VideoSynthConfig) -> list[tuple[np.ndarray, np.ndarray]]
     return poses
 
 
-def render_frames(cfg: VideoSynthConfig) -> Iterator[np.ndarray]:
-    """The underwater frames (uint8 [H, W, 3]) along the transect, one at a time."""
+def render_transect(cfg: VideoSynthConfig, stem: str = "frame") -> Iterator[SynthView]:
+    """The frames along the transect, one at a time: view ``<stem>_<index, 6 digits>.png``, J, depth and the
+    underwater image (float, unquantised; :func:`~pipeline.synth.procedural.to_u8` gives what is encoded)."""
     from pipeline.scene.records import View
     from pipeline.synth.lens import pixel_ray_factor
-    from pipeline.synth.procedural import NO_DISTORTION, build_world, make_camera, render, water_image
+    from pipeline.synth.procedural import NO_DISTORTION, SynthView, build_world, make_camera, render, water_image
+    from pipeline.synth.video_truth import frame_name
     from pipeline.synth.water import WATER_PRESETS
 
     scene = cfg.scene
@@ -62,10 +69,9 @@ def render_frames(cfg: VideoSynthConfig) -> Iterator[np.ndarray]:
     ray = pixel_ray_factor(cam, NO_DISTORTION)
     water, rng = WATER_PRESETS[scene.preset], np.random.default_rng(scene.seed + 7919)
     for i, (R, c) in enumerate(transect_poses(cfg)):
-        view = View(name=f"frame_{i:06d}.png", camera=cam, R=R, t=-R @ c)
+        view = View(name=frame_name(stem, i), camera=cam, R=R, t=-R @ c)
         J, z = render(world, view, max(1, scene.supersample))
-        img = water_image(J, z * ray, water, scene.water_space, scene.noise_std, rng)
-        yield np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
+        yield SynthView(view, J, z, water_image(J, z * ray, water, scene.water_space, scene.noise_std, rng))
 
 
 def encode_video(frames: Iterable[np.ndarray], path: str | Path, fps: int, codec: str = "auto") -> Path:
@@ -97,8 +103,19 @@ def encode_video(frames: Iterable[np.ndarray], path: str | Path, fps: int, codec
     return path
 
 
-def generate_video(cfg: VideoSynthConfig, path: str | Path) -> Path:
-    """Render the transect and encode it to ``path``."""
-    out = encode_video(render_frames(cfg), path, cfg.fps, cfg.codec)
-    log.info("wrote a %d-frame survey video to %s", cfg.frames, out)
+def generate_video(cfg: VideoSynthConfig, path: str | Path, truth: bool = False) -> Path:
+    """Render the transect and encode it to ``path``; with ``truth``, also write each frame's truth into the
+    video's folder as it is rendered (:mod:`.video_truth`). The video is the same either way."""
+    from pipeline.synth.procedural import to_u8
+    from pipeline.synth.video_truth import VideoTruthWriter, frame_stem
+
+    path = Path(path)
+    frames = render_transect(cfg, frame_stem(path))
+    writer = VideoTruthWriter(path.parent, cfg) if truth else None
+    if writer is not None:
+        frames = writer.passing(frames)
+    out = encode_video((to_u8(sv.image) for sv in frames), path, cfg.fps, cfg.codec)
+    if writer is not None:
+        writer.finish(out)
+    log.info("wrote a %d-frame survey video to %s%s", cfg.frames, out, " with its truth" if truth else "")
     return out
