@@ -7,6 +7,8 @@ reference guided filter, reference dewater) on a small crop against the fast pat
 
     python bench/restore.py [--width 6000 --height 4500] [--json]
     python bench/restore.py --filter    # the guided filter's radius / eps sweep (docs/DECISIONS.md)
+    python bench/restore.py --cold [--width 640 --height 480 --photos 4 --bits 8]
+        # first restores on an empty numba cache, and after pipeline.restore.warmup in an earlier process
 """
 
 from __future__ import annotations
@@ -14,7 +16,10 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import resource
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -157,19 +162,85 @@ def filter_sweep() -> list[dict]:
     return rows
 
 
+def _child(what: str, folder: str) -> dict:
+    """In a child process: restore every photo of ``folder`` as the restore stage does, or run the warm-up."""
+    t0 = time.perf_counter()
+    if what == "warmup":
+        from pipeline.restore.warmup import compile_restore_kernels
+
+        return {"cases": compile_restore_kernels(), "seconds": round(time.perf_counter() - t0, 2)}
+    from pipeline.restore.synthetic import SynthFrame
+    from pipeline.restore.views import restore_photo
+
+    imported = time.perf_counter() - t0
+    photos = sorted(p for p in Path(folder).iterdir() if p.stem.startswith("photo"))
+    meta = json.loads((Path(folder) / "frame.json").read_text())
+    fr = SynthFrame(meta["width"], meta["height"], factor=meta["width"] // 80, k1=-0.1)
+    view = fr.render(prior=True)
+    seconds = []
+    for src in photos:
+        t = time.perf_counter()
+        restore_photo(src, Path(folder) / "restored", Path(folder) / "confidence", fr.lens, view, max_gain=8.0,
+                      fmt="auto", space="srgb")
+        seconds.append(round(time.perf_counter() - t, 2))
+    return {"import_s": round(imported, 2), "photo_s": seconds}
+
+
+def cold_start(width: int, height: int, photos: int, bits: int) -> dict:
+    """The restore of ``photos`` photos (8-bit JPEG or 16-bit PNG, render 80 px wide) in a fresh process on an empty
+    numba cache (``NUMBA_CACHE_DIR`` a new folder), then: the warm-up in a fresh process on another empty cache,
+    the same restore in a new process on that cache, and the warm-up again (it only loads)."""
+    from pipeline.restore.synthetic import SynthFrame
+    from pipeline.scene.images import write_image
+
+    fr = SynthFrame(width, height, factor=width // 80, k1=-0.1)
+    I, _, _ = fr.photo_rows(0, height)
+    out = {"frame": f"{width}x{height} {bits}-bit x {photos}"}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp) / "photos"
+        work.mkdir()
+        (work / "frame.json").write_text(json.dumps({"width": width, "height": height}))
+        top, dtype, ext = (255, np.uint8, ".jpg") if bits == 8 else (65535, np.uint16, ".png")
+        for k in range(photos):
+            write_image(work / f"photo{k}{ext}", (I * top + 0.5).astype(dtype))
+
+        def child(what: str, cache: str) -> dict:
+            env = dict(os.environ, NUMBA_CACHE_DIR=str(Path(tmp) / cache))
+            t = time.perf_counter()
+            r = subprocess.run([sys.executable, __file__, "--child", what, str(work)], env=env, check=True,
+                               capture_output=True, text=True)
+            return {**json.loads(r.stdout.strip().splitlines()[-1]), "process_s": round(time.perf_counter() - t, 1)}
+
+        out["restore_empty_cache"] = child("restore", "empty")
+        out["warmup_empty_cache"] = child("warmup", "warmed")
+        out["restore_after_warmup"] = child("restore", "warmed")
+        out["warmup_filled_cache"] = child("warmup", "warmed")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--width", type=int, default=6000)
-    ap.add_argument("--height", type=int, default=4500)
+    ap.add_argument("--width", type=int, help="default 6000 (--cold: 640)")
+    ap.add_argument("--height", type=int, help="default 4500 (--cold: 480)")
     ap.add_argument("--filter", action="store_true")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--cold", action="store_true")
+    ap.add_argument("--photos", type=int, default=4)
+    ap.add_argument("--bits", type=int, default=8, choices=(8, 16))
+    ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args()
-    if a.filter:
+    if a.child:
+        print(json.dumps(_child(*a.child)))
+        return
+    if a.cold:
+        res = cold_start(a.width or 640, a.height or 480, a.photos, a.bits)
+        print(json.dumps(res, indent=None if a.json else 2))
+    elif a.filter:
         res = filter_sweep()
         for r in res:
             print(r)
     else:
-        res = {"frame": frame_bench(a.width, a.height), "twins": twin_bench()}
+        res = {"frame": frame_bench(a.width or 6000, a.height or 4500), "twins": twin_bench()}
         print(json.dumps(res, indent=None if a.json else 2))
     if a.json and a.filter:
         print(json.dumps(res))

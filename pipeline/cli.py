@@ -292,9 +292,10 @@ def cmd_train_classifier(args: argparse.Namespace) -> int:
 
 
 def cmd_warmup(args: argparse.Namespace) -> int:
+    from pipeline.restore.warmup import compile_restore_kernels
     from pipeline.splat.warmup import compile_kernels
 
-    print(json.dumps(compile_kernels()))
+    print(json.dumps({"rasterizer": compile_kernels(), "restore": compile_restore_kernels()}))
     return 0
 
 
@@ -420,8 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_ablate)
 
-    s = sub.add_parser("warmup", help="compile the CPU rasterizer's numba kernels into their cache (a fresh "
-                                      "install's first job otherwise spends 1-3 minutes on it)")
+    s = sub.add_parser("warmup", help="compile the rasterizer's and the restorer's numba kernels into their "
+                                      "cache (a fresh install's first job otherwise spends minutes on it)")
     s.set_defaults(func=cmd_warmup)
 
     from service.client.cli import add_client_commands
