@@ -180,7 +180,7 @@ def _child(what: str, folder: str) -> dict:
     seconds = []
     for src in photos:
         t = time.perf_counter()
-        restore_photo(src, Path(folder) / "restored", Path(folder) / "confidence", fr.lens, view, max_gain=8.0,
+        restore_photo(src, Path(folder) / "restored", Path(folder) / "confidence_maps", fr.lens, view, max_gain=8.0,
                       fmt="auto", space="srgb")
         seconds.append(round(time.perf_counter() - t, 2))
     return {"import_s": round(imported, 2), "photo_s": seconds}

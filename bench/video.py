@@ -63,9 +63,9 @@ def decode_bench(size: str, frames: int, fps: int, root: Path) -> dict:
     step = max(1, w // 250)
     tex = rng.random((h // 8 + 1, (w + step * frames) // 8 + 2, 3))
     tex = (np.repeat(np.repeat(tex, 8, 0), 8, 1) * 255).astype(np.uint8)
-    (root / "upload").mkdir(parents=True, exist_ok=True)
+    (root / "clip").mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
-    video = encode_video((tex[:h, i * step:i * step + w] for i in range(frames)), root / "upload" / "cam.mp4", fps)
+    video = encode_video((tex[:h, i * step:i * step + w] for i in range(frames)), root / "clip" / "cam.mp4", fps)
     encode_s = time.perf_counter() - t
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
@@ -73,7 +73,7 @@ def decode_bench(size: str, frames: int, fps: int, root: Path) -> dict:
     p.start()
     base_mb = q.get()
     p.join()
-    p = ctx.Process(target=_ingest_child, args=(str(root / "upload"), str(root / "job"), q))
+    p = ctx.Process(target=_ingest_child, args=(str(root / "clip"), str(root / "job"), q))
     p.start()
     seconds, decoded, kept, peak_mb = q.get()
     p.join()
@@ -116,7 +116,7 @@ def main() -> None:
 
     torch.set_num_threads(1)  # the ray caster's torch ops: threads fight the other jobs on a shared machine
     root = args.out or Path(tempfile.mkdtemp(prefix="bench-video-"))
-    folder = root / ("scene" if args.truth else "upload")  # the truth makes the video's folder a generated scene
+    folder = root / ("scene" if args.truth else "clip")  # the truth makes the video's folder a generated scene
     folder.mkdir(parents=True, exist_ok=True)
     cfg = VideoSynthConfig(scene=SynthConfig(width=args.width, height=args.height, supersample=1, views=80),
                            frames=args.frames, fps=args.fps, step=args.step)

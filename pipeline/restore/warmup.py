@@ -65,7 +65,7 @@ def compile_restore_kernels(width: int = 64, height: int = 48) -> dict[str, floa
             src = write_image(Path(tmp) / f"photo{k}{case.suffix}",
                               (I * top + 0.5).astype(np.uint8 if case.bits == 8 else np.uint16))
             t0 = time.perf_counter()
-            restore_photo(src, Path(tmp) / "restored", Path(tmp) / "confidence", fr.lens, view, max_gain=8.0,
+            restore_photo(src, Path(tmp) / "restored", Path(tmp) / "confidence_maps", fr.lens, view, max_gain=8.0,
                           fmt=case.fmt, space="srgb")
             seconds[case.name] = round(time.perf_counter() - t0, 2)
     log.info("restore kernels compiled or loaded: %s", seconds)

@@ -54,7 +54,7 @@ class IngestOut(BaseModel):
     ignored_count: int = 0
     videos: list[dict] = Field(default_factory=list, description=(
         f"video files (first {LIST_CAP}): file, frames decoded, keyframes kept, error; every keyframe with its "
-        "reasons is in the ingest.json artifact"))
+        "reasons is in the ingest stage's JSON artifact"))
 
 
 def video_summaries(videos: list[dict]) -> list[dict]:
