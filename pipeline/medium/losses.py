@@ -143,7 +143,7 @@ def point_depth_loss(D: Tensor, pixels: Tensor, ranges: Tensor) -> Tensor:
     restored view is saturated there. The points say where the surface is (docs/DECISIONS.md)."""
     if pixels.numel() == 0:
         return D.new_zeros(())
-    d = torch.maximum(D.reshape(-1)[pixels], 1e-3 * ranges.min())  # a tensor floor: no host sync, no graph break
+    d = D.reshape(-1)[pixels].clamp(min=1e-3 * ranges.min())  # a tensor floor: no host sync, no graph break
     return (d.log() - ranges.log()).abs().mean()
 
 

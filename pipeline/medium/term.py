@@ -200,15 +200,16 @@ def view_losses(medium: Medium, J: Tensor, alpha: Tensor, depth: Tensor, target:
 
     J [H,W,3] premultiplied, alpha [H,W,1], z-depth [H,W,1], target [H,W,3]. Pure (no state changes), so
     ``pipeline.train.jit`` may compile it; this eager function is the compiled graph's reference twin."""
+    # Each use takes its own view of J and alpha, in this order: autograd adds their gradients in the order the
+    # graph recorded them, and the eager run repeats the runs before this function existed bit for bit only so.
     D = _nchw(depth) * ev.ray
-    a = _nchw(alpha)
-    out = medium(_nchw(J), D, a)
-    beta = out.beta_eff.detach()
-    _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, a, depth_scale, weights,
-                             alpha_w, beta_w, enabled, anchor=water_anchor(out.beta_eff, out.B, D, a, estimate),
+    out = medium(_nchw(J), D, _nchw(alpha))
+    _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha), depth_scale,
+                             weights, alpha_w, beta_w, enabled,
+                             anchor=water_anchor(out.beta_eff, out.B, D, _nchw(alpha), estimate),
                              surface=(ev.pixels, ev.ranges), range_map=ev.range_map,
-                             cover=cover_weight(ev.cover_map, beta))
-    return weighted, beta
+                             cover=cover_weight(ev.cover_map, out.beta_eff.detach()))
+    return weighted, out.beta_eff.detach()
 
 
 class MediumTerm:

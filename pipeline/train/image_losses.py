@@ -71,5 +71,7 @@ def photometric_losses(render: Tensor, target: Tensor, ssim_weight: float, *,
     Each caller keeps its own w (``TrainConfig.ssim_weight`` before the medium starts, ``LossWeights.ssim_weight``
     in eq. 13's L_basic). [..., H, W, C] x2, or [N, C, H, W] x2 with ``channels_first`` -> {"l1": [], "dssim": []}"""
     hwc = (lambda x: x.permute(0, 2, 3, 1)) if channels_first else (lambda x: x)
-    return {"l1": (1.0 - ssim_weight) * l1(render, target),
-            "dssim": ssim_weight * (1.0 - ssim(hwc(render), hwc(target)))}
+    # SSIM before L1: the order the autograd graph records them in is the order their gradients are added into
+    # ``render``, and a run is repeated bit for bit only in the same order
+    dssim = ssim_weight * (1.0 - ssim(hwc(render), hwc(target)))
+    return {"l1": (1.0 - ssim_weight) * l1(render, target), "dssim": dssim}
