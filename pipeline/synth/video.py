@@ -91,7 +91,10 @@ def encode_video(frames: Iterable[np.ndarray], path: str | Path, fps: int, codec
                 stream = out.add_stream(codec, rate=fps)
                 stream.width, stream.height, stream.pix_fmt = arr.shape[1], arr.shape[0], "yuv420p"
                 # near-lossless: the frames are test data, compression artefacts are not what is tested
-                stream.options = {"crf": "16"} if codec == "libx264" else {}
+                # one encoder thread: x264's frame threads made every encode of the same frames differ (decoded up to
+                # 19/255 apart), so a test video's keyframes and their SfM changed from run to run
+                stream.options = {"crf": "16", "threads": "1"} if codec == "libx264" else {}
+                stream.codec_context.thread_count = 1
                 if codec != "libx264":
                     stream.bit_rate = 8 * arr.shape[0] * arr.shape[1] * fps
             for packet in stream.encode(av.VideoFrame.from_ndarray(arr, format="rgb24")):
