@@ -239,12 +239,11 @@ class MediumTerm:
                 rays[v.camera] = torch.as_tensor(ray_length_factor(v.camera), dtype=torch.float32,
                                                  device=device)[None, None]
         self.ray = [rays[v.camera] for v in views]  # per view [1, 1, H, W], read only
-        self.surface = [surface_pixels(scene, v, device) for v in views]  # per view: (pixels [K], ranges [K])
-        maps = [point_range_map(v, *s) for v, s in zip(views, self.surface)]
-        self.range_maps = [m.range for m in maps]  # per view [1, 1, h, w]
-        self.cover_maps = [cover_range_map(m, s[1]) for m, s in zip(maps, self.surface)]  # per view [1, 1, h, w]
-        self.evidence = [ViewEvidence(r, px, rg, rm, cm) for r, (px, rg), rm, cm
-                         in zip(self.ray, self.surface, self.range_maps, self.cover_maps)]
+        self.evidence: list[ViewEvidence] = []  # per view: what its losses read besides the render
+        for v, ray in zip(views, self.ray):
+            pixels, ranges = surface_pixels(scene, v, device)
+            rm = point_range_map(v, pixels, ranges)
+            self.evidence.append(ViewEvidence(ray, pixels, ranges, rm.range, cover_range_map(rm, ranges)))
         if compiled:  # every view's point count in one compiled graph (pipeline.train.jit)
             for ev in self.evidence:
                 dynamic_rows(ev.pixels), dynamic_rows(ev.ranges)

@@ -53,7 +53,8 @@ def should_compile(mode: CompileMode, iterations: int) -> bool:
 
 
 class Compiled:
-    """``fn`` compiled on first call (dynamic shapes), falling back to ``fn`` itself for good if compiling fails.
+    """``fn`` compiled on first call (static sizes but those marked by :func:`dynamic_rows`), falling back to
+    ``fn`` itself for good if compiling fails.
 
     Nothing is compiled until the first call. That call first runs the compiled graph forward and backward
     (:func:`_trial`): the backward graph compiles lazily, and a failure there would otherwise surface in the
