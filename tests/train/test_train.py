@@ -19,7 +19,14 @@ from pipeline.config import (
 from pipeline.scene.records import Camera, Scene, View
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.train.image_losses import ssim
-from pipeline.train.setup import active_sh_degree, initial_gaussians, means_lr, prepare_images, scene_extent
+from pipeline.train.setup import (
+    active_sh_degree,
+    initial_gaussians,
+    make_optimizers,
+    means_lr,
+    prepare_images,
+    scene_extent,
+)
 from pipeline.train.trainer import CHECKPOINT_NAME, TrainingCancelled, config_changes, train
 
 # ---- fast unit tests ------------------------------------------------------------------------------------
@@ -103,6 +110,30 @@ def test_random_init_without_points():
     assert float((means - torch.tensor([1.0, 0, 0])).abs().max()) <= 3.3  # cube of half-size 3 x extent
     again = initial_gaussians(scene, cfg, 1.1, torch.device("cpu"))
     assert torch.equal(again["means"], params["means"])  # seeded
+
+
+def test_fused_adam_matches_its_for_loop_twin():
+    """The Gaussians' Adam is fused (one pass per tensor); torch's for-loop Adam is the reference: the same
+    trajectory over 20 steps to float rounding, and the state gsplat's densification edits has the same keys."""
+    cam = Camera(8, 6, 10.0, 10.0, 4.0, 3.0)
+    scene = Scene([_view("a", (0, 0, 0), cam), _view("b", (2, 0, 0), cam)])
+    cfg = TrainConfig(random_init_points=300, sh_degree=3)
+    fused_p = initial_gaussians(scene, cfg, 1.0, torch.device("cpu"))
+    ref_p = torch.nn.ParameterDict({k: torch.nn.Parameter(v.detach().clone()) for k, v in fused_p.items()})
+    fused, ref = make_optimizers(fused_p, cfg, 1.0), make_optimizers(ref_p, cfg, 1.0)
+    assert all(o.defaults["fused"] for o in fused.values())
+    for k, o in ref.items():  # the twin: the same groups and hyper-parameters, for-loop implementation
+        ref[k] = torch.optim.Adam(o.param_groups, eps=cfg.adam_eps, betas=(0.9, 0.999), foreach=False)
+    for step in range(20):
+        for params, opts in ((fused_p, fused), (ref_p, ref)):
+            grads = torch.Generator().manual_seed(step)  # the same gradients for both
+            for k in sorted(params.keys()):
+                params[k].grad = torch.randn(params[k].shape, generator=grads) * 1e-2
+            for o in opts.values():
+                o.step()
+    for k in fused_p.keys():
+        np.testing.assert_allclose(fused_p[k].detach().numpy(), ref_p[k].detach().numpy(), rtol=1e-5, atol=1e-6)
+        assert set(fused[k].state[fused_p[k]]) == set(ref[k].state[ref_p[k]]) == {"step", "exp_avg", "exp_avg_sq"}
 
 
 def test_config_changes_are_named():
