@@ -82,10 +82,11 @@ class TooFewRegisteredError(SfmError):
 
 @dataclass
 class SubModel:
-    """A model SfM built besides the kept one: where it is on disk and which images it placed."""
+    """A model SfM built besides the kept one: where it is on disk and which images it placed that the kept model
+    did not (:func:`separate_models`)."""
 
     index: int  # written to distorted/sparse/<index>
-    registered: int
+    registered: int  # len(images)
     images: list[str]
 
 
@@ -250,7 +251,8 @@ def run_sfm(
         rec = recs[0]
         registered = rec.num_reg_images()
         reproj = float(rec.compute_mean_reprojection_error())
-        others = _write_models(recs, distorted / "sparse")
+        others = separate_models(_write_models(recs, distorted / "sparse"),
+                                 {im.name for im in rec.images.values() if im.has_pose})
         t_und = time.perf_counter()
         _undistort(distorted / "sparse" / "0", src_dir, out, distorted / "_undistort", cfg, cancellation_token)
         attempt.phases["undistort"] = time.perf_counter() - t_und
@@ -478,6 +480,21 @@ def _pair_stats(db_path: Path, overlap: int) -> tuple[int, int]:
         pairs += 1
         loops += d > overlap and d & (d - 1) != 0
     return pairs, loops
+
+
+def separate_models(models: list[SubModel], kept: set[str]) -> list[SubModel]:
+    """The side models as far as they hold images the kept model does not: each lists only those, and one whose
+    images the kept model placed too is no separate part of the survey (dropped from the list; still on disk).
+
+    pycolmap's mapper may start a further model from images the first one places later: on the 27 RUIE B frames
+    the kept model held all 27 while two side models held 8 and 5 of them, and the job said 13 photos were left
+    out (docs/DECISIONS.md, "SfM at survey size")."""
+    out = []
+    for m in models:
+        outside = [n for n in m.images if n not in kept]
+        if outside:
+            out.append(SubModel(index=m.index, registered=len(outside), images=outside))
+    return out
 
 
 def _write_models(recs: list, sparse: Path) -> list[SubModel]:

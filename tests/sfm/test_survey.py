@@ -81,3 +81,17 @@ def test_sequential_matching_finds_loops_on_its_own_vocabulary(tmp_path: Path) -
 def test_bad_overlap_is_refused(tmp_path: Path, bad: SfmConfig) -> None:
     with pytest.raises(ValueError, match="out of range"):
         run_sfm(tmp_path, tmp_path / "out", bad)
+
+
+def test_side_models_list_only_images_the_kept_model_lacks() -> None:
+    """pycolmap may start a further model from images the first one places later (the 27 RUIE B frames: kept
+    model 27, side models of 8 and 5 of the same frames). Those are not a split survey: nothing was left out."""
+    from pipeline.sfm.recipe import SubModel, separate_models
+
+    kept = {f"B_{i}.jpg" for i in range(571, 598)}
+    dup = [SubModel(1, 8, [f"B_{i}.jpg" for i in range(584, 592)]),
+           SubModel(2, 5, [f"B_{i}.jpg" for i in range(592, 597)])]
+    assert separate_models(dup, kept) == []
+    part = SubModel(1, 4, ["A_1.jpg", "B_571.jpg", "B_900.jpg", "B_901.jpg"])
+    assert separate_models([part], kept) == [SubModel(1, 3, ["A_1.jpg", "B_900.jpg", "B_901.jpg"])]
+    assert separate_models([SubModel(1, 2, ["x.jpg", "y.jpg"])], set()) == [SubModel(1, 2, ["x.jpg", "y.jpg"])]
