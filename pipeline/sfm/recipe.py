@@ -251,13 +251,12 @@ def run_sfm(
         rec = recs[0]
         registered = rec.num_reg_images()
         reproj = float(rec.compute_mean_reprojection_error())
-        others = separate_models(_write_models(recs, distorted / "sparse"),
-                                 {im.name for im in rec.images.values() if im.has_pose})
+        placed = {im.name for im in rec.images.values() if im.has_pose}
+        others = separate_models(_write_models(recs, distorted / "sparse"), placed)
         t_und = time.perf_counter()
         _undistort(distorted / "sparse" / "0", src_dir, out, distorted / "_undistort", cfg, cancellation_token)
         attempt.phases["undistort"] = time.perf_counter() - t_und
 
-    placed = {im.name for im in rec.images.values() if im.has_pose}
     unregistered = [n for n in names if n not in placed]
     if others:
         warnings.append(

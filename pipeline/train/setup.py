@@ -115,12 +115,13 @@ def active_sh_degree(cfg: TrainConfig, iteration: int) -> int:
     return min(cfg.sh_degree, iteration // max(cfg.sh_degree_interval, 1))
 
 
-def make_optimizers(params: nn.ParameterDict, cfg: TrainConfig, extent: float) -> dict[str, torch.optim.Adam]:
+def make_optimizers(params: nn.ParameterDict, cfg: TrainConfig, extent: float, *,
+                    fused: bool = True) -> dict[str, torch.optim.Adam]:
     """One single-group Adam per Gaussian tensor (gsplat's strategy convention), 3DGS learning rates.
 
     Fused Adam (one pass over each tensor instead of one per operation): the same update to float rounding, a
-    step's optimizer 7.2 → ~2 ms for 80k Gaussians on the CPU (docs/DECISIONS.md, "Whole-job speed"); torch's
-    for-loop Adam is its twin in tests/train/test_train.py."""
+    step's optimizer 9.9 → ~4.8 ms for 80k Gaussians on the CPU (docs/DECISIONS.md, "Whole-job speed");
+    ``fused=False`` gives torch's for-loop Adam, its twin in tests/train/test_train.py."""
     lrs = {
         "means": cfg.lr_means * extent,
         "scales": cfg.lr_scales,
@@ -131,7 +132,7 @@ def make_optimizers(params: nn.ParameterDict, cfg: TrainConfig, extent: float) -
     }
     return {
         k: torch.optim.Adam([{"params": [params[k]], "lr": lrs[k], "name": k}], eps=cfg.adam_eps, betas=(0.9, 0.999),
-                            fused=params[k].device.type in ("cpu", "cuda"))
+                            fused=fused and params[k].device.type in ("cpu", "cuda"))
         for k in GAUSSIAN_KEYS
     }
 
