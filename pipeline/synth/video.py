@@ -90,10 +90,12 @@ def encode_video(frames: Iterable[np.ndarray], path: str | Path, fps: int, codec
             if stream is None:
                 stream = out.add_stream(codec, rate=fps)
                 stream.width, stream.height, stream.pix_fmt = arr.shape[1], arr.shape[0], "yuv420p"
-                # near-lossless: the frames are test data, compression artefacts are not what is tested
-                # one encoder thread: x264's frame threads made every encode of the same frames differ (decoded up to
-                # 19/255 apart), so a test video's keyframes and their SfM changed from run to run
-                stream.options = {"crf": "16", "threads": "1"} if codec == "libx264" else {}
+                # near-lossless: the frames are test data, compression artefacts are not what is tested.
+                # Reproducible: the same frames must give the same file, or a test video's keyframes and their SfM
+                # change from run to run. x264's frame threads broke that (one thread now), and so did its
+                # rate control: with crf, even one thread, 5 encodes of the same 40 frames gave 5 different files
+                # (its lookahead/mbtree); a constant quantiser gave the same bytes every time.
+                stream.options = {"qp": "16", "threads": "1"} if codec == "libx264" else {}
                 stream.codec_context.thread_count = 1
                 if codec != "libx264":
                     stream.bit_rate = 8 * arr.shape[0] * arr.shape[1] * fps

@@ -17,7 +17,8 @@ from pipeline.evaluate.metrics import pooled_psnr
 from pipeline.scene.images import read_image, write_image
 from pipeline.scene.records import LensCamera, ray_length_factor
 from pipeline.synth.ground_truth import find_ground_truth, is_generated_scene, load_ground_truth
-from pipeline.synth.video import VideoSynthConfig, generate_video, transect_poses
+from pipeline.synth.procedural import to_u8
+from pipeline.synth.video import VideoSynthConfig, encode_video, generate_video, transect_poses
 from pipeline.synth.water import WATER_PRESETS, underwater_image
 
 FRAMES = 40
@@ -125,3 +126,12 @@ def test_keyframes_are_scored_against_their_own_frames(video: Path, tmp_path: Pa
     for split in ("test", "train"):
         assert scores[split]["restored_psnr"] == float("inf")  # the clean frame of the same index
         assert scores[split]["photo_psnr"] < 25.0, scores[split]  # the water is still in the photo
+
+
+def test_encoding_the_same_frames_twice_gives_the_same_file(video: Path, tmp_path: Path) -> None:
+    """A test video's keyframes, and the SfM run on them, must not change from run to run: with x264's rate control
+    (crf, even on one thread) 5 encodes of these frames gave 5 different files, and a CI run lost a keyframe."""
+    frames = [to_u8(read_image(p)) for p in sorted((video.parent / "images").iterdir())]
+    assert len(frames) == FRAMES
+    files = [encode_video(frames, tmp_path / f"again{k}.mp4", CFG.fps).read_bytes() for k in range(3)]
+    assert files[0] == files[1] == files[2]
