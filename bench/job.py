@@ -43,8 +43,9 @@ OURS = HERE.parent
 
 # -- child processes -------------------------------------------------------------------------------------------
 
-def _child_job(job: Path, images: Path) -> None:
-    """Run one fast job in this process; print a JSON line with the stage table (this checkout's pipeline)."""
+def _child_job(job: Path, images: Path, mode: str = "auto") -> None:
+    """Run one fast job (``mode``: the job's --mode) in this process; print a JSON line with the stage table (this
+    checkout's pipeline)."""
     import resource
 
     from pipeline.job.layout import JobLayout
@@ -61,7 +62,7 @@ def _child_job(job: Path, images: Path) -> None:
 
     t0 = time.perf_counter()
     with collecting() as sections:
-        run_job(job, JobOptions(source=str(images), preset="fast", mode="auto"))
+        run_job(job, JobOptions(source=str(images), preset="fast", mode=mode))
     wall = time.perf_counter() - t0
     layout = JobLayout(job)
     rep = json.loads(layout.report_json.read_text())
@@ -263,11 +264,13 @@ def main() -> None:
     ap.add_argument("--profile-steps", type=int, default=60)
     ap.add_argument("--no-numba", action="store_true", help="skip the fresh-cache compile measurement")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--mode", default="auto", choices=["auto", "3dgs", "homogeneous", "dualphys"],
+                    help="the jobs' --mode: a fixed mode compares checkouts like for like (no probe, same model)")
     ap.add_argument("--child-job", nargs=2, metavar=("JOB", "IMAGES"), help=argparse.SUPPRESS)
     ap.add_argument("--child-numba", metavar="SIZE", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child_job:
-        return _child_job(Path(args.child_job[0]), Path(args.child_job[1]))
+        return _child_job(Path(args.child_job[0]), Path(args.child_job[1]), args.mode)
     if args.child_numba:
         return _child_numba(args.child_numba)
 
@@ -295,10 +298,10 @@ def main() -> None:
         for name in order:
             job = args.out / f"job_{name}_{r}"
             subprocess.run(["rm", "-rf", str(job)], check=True)
-            res = _run_child(checkouts[name], ["--child-job", str(job), str(scene / "images")])
+            res = _run_child(checkouts[name], ["--child-job", str(job), str(scene / "images"), "--mode", args.mode])
             runs[name].append(res)
             print(f"{name} round {r}: {json.dumps({k: v for k, v in res.items() if k != 'sections'})}", flush=True)
-    print(f"\n## The job: {args.views} generated views at {args.size}, --preset fast, mode auto\n")
+    print(f"\n## The job: {args.views} generated views at {args.size}, --preset fast, mode {args.mode}\n")
     print("\n".join(_stage_table(runs)))
     sec = runs["this"][-1]["sections"]
     n = max(1.0, sec.get("step#", 0.0))
