@@ -254,6 +254,8 @@ def _profile_table(p: dict) -> list[str]:
 # -- main ----------------------------------------------------------------------------------------------------------
 
 def main() -> None:
+    from pipeline.job.options import JOB_MODES  # every checkout since the re-layout (#12) has it
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", default="320x240", help="the generated scene's size (the job's training size)")
     ap.add_argument("--views", type=int, default=24)
@@ -264,7 +266,7 @@ def main() -> None:
     ap.add_argument("--profile-steps", type=int, default=60)
     ap.add_argument("--no-numba", action="store_true", help="skip the fresh-cache compile measurement")
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--mode", default="auto", choices=["auto", "3dgs", "homogeneous", "dualphys"],
+    ap.add_argument("--mode", default="auto", choices=list(JOB_MODES),
                     help="the jobs' --mode: a fixed mode compares checkouts like for like (no probe, same model)")
     ap.add_argument("--child-job", nargs=2, metavar=("JOB", "IMAGES"), help=argparse.SUPPRESS)
     ap.add_argument("--child-numba", metavar="SIZE", help=argparse.SUPPRESS)
