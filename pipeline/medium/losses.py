@@ -148,23 +148,37 @@ def point_depth_loss(D: Tensor, pixels: Tensor, ranges: Tensor) -> Tensor:
 
 
 DEPTH_BAND = 3.0  # depth_band_loss lets the surface lie up to this factor beyond its neighbourhood's range
+NEAR_BAND = 1.1  # ... and, where the points' plane fit holds, up to this factor nearer than it
 
 
-def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, band: float = DEPTH_BAND) -> Tensor:
-    """Mean α·max(0, log D − log R − log ``band``) over all pixels, R the view's point range map upsampled to
-    the image. D, alpha [N,1,H,W], range_map [N,1,h,w] (:func:`pipeline.medium.term.point_range_map`) → []
+def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, fitted: Tensor | None = None,
+                    band: float = DEPTH_BAND, near: float = NEAR_BAND) -> Tensor:
+    """Mean α·(max(0, log D − log R − log ``band``) + f·max(0, log R − log D − log ``near``)) over all pixels, R
+    the view's point range map and f its plane fit's mask (1 where the fit found the surface), both upsampled to
+    the image. D, alpha [N,1,H,W], range_map and fitted [N,1,h,w] (:func:`pipeline.medium.term.point_range_map`;
+    ``fitted`` None: the far side only) → []
 
     Not in the paper. ``point_depth_loss`` holds the surface at the sparse points' own pixels; where SfM found
     few points (bright, low-texture sand) Gaussians were still drawn far behind the seabed (real RUIE frames;
     docs/DECISIONS.md, "The water must not eat the scene"), where they show only the veil, and the restored
     view was black there. A surface is continuous with its neighbourhood, so no covered pixel may lie more than
-    ``band`` times beyond the range its nearest points predict; nearer costs nothing here (floaters are the
-    floater term's). α is detached: the way out must not be to uncover the pixel, which is the shortcut this
-    term closes."""
+    ``band`` times beyond the range its nearest points predict.
+    The near side: in turbid water a surface drawn in front of the seabed (0.4-0.8 of its range) shows the
+    photo as well as the true one once its colour takes up the veil it no longer has in front of it; between the
+    points nothing resisted, and 10-58 % of each training view of a camera-like turbid scene rendered so, while
+    the points' plane fit was within 0.89-1.13 of the true range everywhere; the restored view kept grey veil
+    patches there (docs/DECISIONS.md, "A surface in front of the seabed"). So no covered pixel may lie more than
+    ``near`` times nearer than the fit either, where there is a fit (where it ran out to the horizon the range is
+    a held bound, not a measurement). α is detached: the way out must not be to uncover the pixel, which is the
+    shortcut this term closes."""
     if range_map.numel() == 0:
         return D.new_zeros(())
     ref = F.interpolate(range_map.log(), size=D.shape[-2:], mode="bilinear", align_corners=False)
-    excess = (D.clamp(min=1e-6).log() - ref - math.log(band)).clamp(min=0)
+    logD = D.clamp(min=1e-6).log()
+    excess = (logD - ref - math.log(band)).clamp(min=0)
+    if fitted is not None:
+        f = F.interpolate(fitted.to(D.dtype), size=D.shape[-2:], mode="bilinear", align_corners=False)
+        excess = excess + f * (ref - logD - math.log(near)).clamp(min=0)
     return (alpha.detach() * excess).mean()
 
 
@@ -201,7 +215,8 @@ class LossWeights:
     w_floater: float = 0.005  # not in the paper: keeps the water column free of floaters
     w_surface: float = 0.05  # not in the paper: the sparse points' pixels stay covered (surface_loss)
     w_point_depth: float = 0.05  # not in the paper: and render at the points' distance (point_depth_loss)
-    w_depth_band: float = 0.05  # not in the paper: and no covered pixel far behind its points (depth_band_loss)
+    w_depth_band: float = 0.05  # not in the paper: and no covered pixel far behind or in front of its points
+    #                            (depth_band_loss)
     w_cover: float = 0.05  # not in the paper: and the surface their planes predict in sight covered (cover_loss)
     mu: float = 0.1  # complementarity weight inside L_ab
     anchor: float = 4.0  # weight of the measured-water anchors inside L_attenuation and L_scattering (4 restored
@@ -217,7 +232,7 @@ def loss_terms(
     depth_scale: float, w: LossWeights, alpha_w: float = 1.0, beta_w: float = 1.0,
     enabled: frozenset[str] = frozenset({"ab", "wat", "edge", "ms", "floater"}),
     anchor: dict[str, tuple[Tensor, Tensor]] | None = None, surface: tuple[Tensor, Tensor] | None = None,
-    range_map: Tensor | None = None, cover: Tensor | None = None,
+    range_map: Tensor | None = None, cover: Tensor | None = None, range_fitted: Tensor | None = None,
 ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
     """Eq. 13's terms: (raw terms for logging, weighted terms whose sum is L_total).
 
@@ -246,7 +261,7 @@ def loss_terms(
             raw["surface"] = surface_loss(alpha, surface[0])
             raw["point_depth"] = point_depth_loss(D, *surface)
         if range_map is not None:
-            raw["depth_band"] = depth_band_loss(D, alpha, range_map)
+            raw["depth_band"] = depth_band_loss(D, alpha, range_map, range_fitted)
         if cover is not None:
             raw["cover"] = cover_loss(alpha, cover)
     weights = {"basic": w.w_basic, "ab": w.w_ab, "wat": w.w_wat, "edge": w.w_edge, "ms": w.w_ms,

@@ -166,6 +166,7 @@ class ViewEvidence(NamedTuple):
     ranges: Tensor  # [K] the distance to the nearest such point
     range_map: Tensor  # [1, 1, h, w] point_range_map's grid (empty: no point)
     cover_map: Tensor  # [1, 1, h, w] cover_range_map's grid (empty: no point)
+    range_fitted: Tensor  # [1, 1, h, w] float: 1 where point_range_map's plane fit found the surface (empty: no point)
 
 
 def estimate_tensors(estimate: dict[str, Any] | None, device: torch.device) -> dict[str, Tensor] | None:
@@ -207,7 +208,7 @@ def view_losses(medium: Medium, J: Tensor, alpha: Tensor, depth: Tensor, target:
     _, weighted = loss_terms(out.I, _nchw(target), _nchw(J), out.A, out.B, out.B_frac, D, _nchw(alpha), depth_scale,
                              weights, alpha_w, beta_w, enabled,
                              anchor=water_anchor(out.beta_eff, out.B, D, _nchw(alpha), estimate),
-                             surface=(ev.pixels, ev.ranges), range_map=ev.range_map,
+                             surface=(ev.pixels, ev.ranges), range_map=ev.range_map, range_fitted=ev.range_fitted,
                              cover=cover_weight(ev.cover_map, out.beta_eff.detach()))
     return weighted, out.beta_eff.detach()
 
@@ -243,7 +244,8 @@ class MediumTerm:
         for v, ray in zip(views, self.ray):
             pixels, ranges = surface_pixels(scene, v, device)
             rm = point_range_map(v, pixels, ranges)
-            self.evidence.append(ViewEvidence(ray, pixels, ranges, rm.range, cover_range_map(rm, ranges)))
+            self.evidence.append(ViewEvidence(ray, pixels, ranges, rm.range, cover_range_map(rm, ranges),
+                                              rm.fitted.to(rm.range.dtype)))
         if compiled:  # every view's point count in one compiled graph (pipeline.train.jit)
             for ev in self.evidence:
                 dynamic_rows(ev.pixels), dynamic_rows(ev.ranges)

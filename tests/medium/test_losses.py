@@ -131,12 +131,33 @@ def test_depth_band_loss_pulls_far_surfaces_in_and_never_uncovers():
     assert float(L.depth_band_loss(D.detach(), alpha.detach(), torch.zeros(0))) == 0.0
 
 
+def test_depth_band_loss_pushes_near_surfaces_back_only_where_the_plane_fit_holds():
+    ref = torch.full((1, 1, 2, 2), 10.0)  # the neighbourhood's points predict 10
+    D = torch.tensor([[[[10.0, 8.5, 5.0], [5.0, 25.0, 150.0]]]], requires_grad=True)
+    alpha = torch.tensor([[[[1.0, 1.0, 1.0], [0.0, 1.0, 1.0]]]], requires_grad=True)
+    loss = L.depth_band_loss(D, alpha, ref, torch.ones(1, 1, 2, 2), near=1.25)
+    loss.backward()
+    g = D.grad.reshape(-1)
+    # Down to 10/1.25 = 8 is free; 5 is pushed back, 150 pulled in; the uncovered near pixel is free.
+    assert g[2] < 0 and g[5] > 0 and int((g != 0).sum()) == 2
+    expected = (float(torch.log(torch.tensor(1.6))) + float(torch.log(torch.tensor(5.0)))) / 6
+    assert abs(float(loss.detach()) - expected) < 1e-5
+    assert alpha.grad is None or float(alpha.grad.abs().sum()) == 0.0
+    # Where the fit ran out to the horizon (its range only a held bound), nearer is free, as without a mask.
+    unfit = L.depth_band_loss(D.detach(), alpha.detach(), ref, torch.zeros(1, 1, 2, 2))
+    assert abs(float(unfit) - float(L.depth_band_loss(D.detach(), alpha.detach(), ref))) < 1e-7
+    assert abs(float(unfit) - float(torch.log(torch.tensor(5.0))) / 6) < 1e-5
+
+
 def test_depth_band_loss_gradcheck():
     g = torch.Generator().manual_seed(3)
     D = (torch.rand(1, 1, 8, 8, generator=g, dtype=torch.float64) * 3 + 2.0).requires_grad_()  # all beyond the band
     alpha = torch.rand(1, 1, 8, 8, generator=g, dtype=torch.float64)
     ref = torch.full((1, 1, 2, 2), 0.4, dtype=torch.float64)
     assert torch.autograd.gradcheck(lambda d: L.depth_band_loss(d, alpha, ref), (D,), eps=1e-6, atol=1e-5)
+    near = (torch.rand(1, 1, 8, 8, generator=g, dtype=torch.float64) * 0.15 + 0.05).requires_grad_()  # all nearer
+    fitted = torch.tensor([[[[1.0, 0.0], [1.0, 1.0]]]], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda d: L.depth_band_loss(d, alpha, ref, fitted), (near,), eps=1e-7, atol=1e-5)
 
 
 def test_point_range_map_follows_the_points_neighbourhood():

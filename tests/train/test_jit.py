@@ -32,7 +32,8 @@ def _view(h: int, w: int, k: int, seed: int):
     ranges = 1.0 + 2.0 * torch.rand(k, generator=g)
     range_map = 1.5 + torch.rand(1, 1, h // 4, w // 4, generator=g)
     cover_map = 1.5 + torch.rand(1, 1, h // 4, w // 4, generator=g)
-    return (J, alpha, depth, target), ViewEvidence(ray, pixels, ranges, range_map, cover_map)
+    fitted = (torch.rand(1, 1, h // 4, w // 4, generator=g) < 0.7).float()  # the plane fit held in most cells
+    return (J, alpha, depth, target), ViewEvidence(ray, pixels, ranges, range_map, cover_map, fitted)
 
 
 def _estimate() -> dict[str, torch.Tensor]:
