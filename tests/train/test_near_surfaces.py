@@ -8,8 +8,10 @@ kind of scene at test size, trained on its true cameras and points (no SfM, so t
 alone), in linear light as the job does by default.
 
 Measured when written (16 views 200x150, seed 0, 1,500 iterations, homogeneous; share of a training view's
-covered pixels rendered nearer than 0.8 of the true depth): mean 0.7 %, worst view 8.0 %; with the near side
-switched off (``near`` 1e9) mean 14.5 %, worst 53.9 %. About 2 min on a loaded 2-core machine.
+covered pixels rendered nearer than 0.8 of the true depth, mean over views / worst view), in both of numba's
+cache states (freshly compiled rasterizer kernels train a slightly different model than cached ones: README):
+with the near side 0.7 % / 8.0 % (cached), 3.6 % / 21.8 % (fresh, as on CI); switched off (``near`` 1e9)
+14.5 % / 53.9 % (cached), 10.1 % / 40.7 % (fresh). About 2 min on a loaded 2-core machine.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ pytestmark = [pytest.mark.slow,
                                  reason="shared/data/textures/euvp-gtr-a is not beside the repository")]
 
 NEAR = 0.8  # a covered pixel nearer than this share of the true depth counts as drawn in front of the seabed
-MEAN_SHARE, WORST_SHARE = 0.03, 0.2  # measured 0.007 and 0.080; 0.145 and 0.539 without the near side
+MEAN_SHARE, WORST_SHARE = 0.06, 0.32  # measured up to 0.036 and 0.218; without the near side >= 0.101 and 0.407
 
 
 def test_turbid_water_draws_no_surface_in_front_of_the_seabed(tmp_path, record_property):
@@ -58,4 +60,5 @@ def test_turbid_water_draws_no_surface_in_front_of_the_seabed(tmp_path, record_p
         shares.append(float(np.mean(z[seen] < NEAR * truth[seen])))
     record_property("result", {"mean": round(float(np.mean(shares)), 4), "worst": round(max(shares), 4),
                                "gaussians": int(res.gaussians["means"].shape[0])})
-    assert np.mean(shares) <= MEAN_SHARE and max(shares) <= WORST_SHARE, shares
+    summary = (round(float(np.mean(shares)), 4), round(max(shares), 4), [round(x, 3) for x in shares])
+    assert np.mean(shares) <= MEAN_SHARE and max(shares) <= WORST_SHARE, summary
