@@ -173,12 +173,13 @@ def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, fitted: Tensor 
     shortcut this term closes."""
     if range_map.numel() == 0:
         return D.new_zeros(())
-    ref = F.interpolate(range_map.log(), size=D.shape[-2:], mode="bilinear", align_corners=False)
+    grids = range_map.log() if fitted is None else torch.cat([range_map.log(), fitted.to(range_map.dtype)], 1)
+    up = F.interpolate(grids, size=D.shape[-2:], mode="bilinear", align_corners=False)  # one resize for both
+    ref = up[:, :1]
     logD = D.clamp(min=1e-6).log()
     excess = (logD - ref - math.log(band)).clamp(min=0)
     if fitted is not None:
-        f = F.interpolate(fitted.to(D.dtype), size=D.shape[-2:], mode="bilinear", align_corners=False)
-        excess = excess + f * (ref - logD - math.log(near)).clamp(min=0)
+        excess = excess + up[:, 1:] * (ref - logD - math.log(near)).clamp(min=0)
     return (alpha.detach() * excess).mean()
 
 
