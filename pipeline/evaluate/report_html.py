@@ -61,6 +61,8 @@ def _figures(cells: list[tuple[str, bytes]], wide: int = 0) -> str:
 
 def _restored_photos(r: dict, pics: Pictures) -> str:
     """Your photos, de-watered: what the restore stage did, its scores against ground truth, the pictures."""
+    from pipeline.restore.dewater import CONFIDENCE_ERROR
+
     rs = r.get("restore")
     html = "<h2>Your photos, de-watered</h2>"
     if rs is None:
@@ -76,8 +78,9 @@ def _restored_photos(r: dict, pics: Pictures) -> str:
              f"and lens geometry into <code>restored/</code>: each pixel is the photo's own (I − B) / A, with the "
              f"water the model learned at that pixel's range from the reconstruction, where the water lets "
              f"enough light through, and leans on the model's reconstruction of that spot where it does not; no "
-             f"channel is amplified more than {fmt(rs['max_gain'], 1)} times (the confidence map is the photo's "
-             f"share). "
+             f"channel is amplified more than {fmt(rs['max_gain'], 1)} times (the confidence map is the expected "
+             f"error made a score: 1/2 where the error expected from the water's uncertainty, the photo's noise "
+             f"and what the model lacks is {fmt(255 * CONFIDENCE_ERROR, 0)} of 255). "
              + (f"Restored surface: {fmt(100 * min(surface), 0)}–{fmt(100 * max(surface), 0)} % of each photo. "
                 + (f"Seabed next to it that the model does not hold: up to {fmt(100 * max(extended), 0)} % of a "
                    f"photo, de-watered from the photo alone at the depth carried on from the surface (confidence "

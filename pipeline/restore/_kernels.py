@@ -163,19 +163,22 @@ def _linear_to_srgb(x):  # pragma: no cover - numba
 
 
 @njit(parallel=True, cache=True)
-def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max, prior, has_prior, lam2
-            ):  # pragma: no cover - numba
+def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max, prior, has_prior, lam2,
+            sigma, var2, tau):  # pragma: no cover - numba
     """The physics per pixel (twin: ``pipeline.restore.dewater.dewater_reference``).
 
     img [n, W, 3] any dtype (× ``scale`` → [0, 1]); r [n, W] float32 range; surface [n, W] bool; k_A, k_B
     [n, W, 3] or [1, 1, 3] float32; B_inf [3]; max_gain > 1; prior [n, W, 3] float32 (the model's J, in the
-    physics' space) read when ``has_prior``, with weights lam2 [3] (each ≥ (0.5 / max_gain)²). Writes J
-    [n, W, 3] (uint8 or uint16) quantised to 0..out_max; returns (confidence [n, W] float32, clipped count)."""
+    physics' space) read when ``has_prior``, with weights lam2 [3] (each ≥ (0.5 / max_gain)²); sigma [3, 3] the
+    water's uncertainty (rows: log k_A, log k_B, logit B∞; columns: channels), var2 [2, 3] the photo's noise
+    variance and what the model lacks (its detail variance, read with the prior), tau the expected error at
+    confidence 1/2 (``pipeline.restore.dewater.expected_error``). Writes J [n, W, 3] (uint8 or uint16)
+    quantised to 0..out_max; returns (confidence [n, W] float32, clipped count)."""
     n, W, _ = img.shape
     conf = np.zeros((n, W), np.float32)
     clipped = np.zeros(n, np.int64)
     a_min = 1.0 / max_gain
-    log_g = np.log(max_gain)
+    tau2 = tau * tau
     full_A = 1 if k_A.shape[0] > 1 else 0  # index multipliers: 0 reads the [1, 1, 3] constant
     full_B = 1 if k_B.shape[0] > 1 else 0
     for i in prange(n):
@@ -188,28 +191,46 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
             if not rr >= 0.0:  # also NaN
                 rr = 0.0
             ia, ja, ib, jb = i * full_A, j * full_A, i * full_B, j * full_B
-            cmin = 1.0
+            err2 = 0.0
             clip = False
             for c in range(3):
-                A = np.exp(-min(max(np.float64(k_A[ia, ja, c]) * rr, 0.0), 80.0))
-                B = B_inf[c] * -np.expm1(-min(max(np.float64(k_B[ib, jb, c]) * rr, 0.0), 80.0))
+                kA = min(max(np.float64(k_A[ia, ja, c]), 0.0), 1e30)
+                kB = min(max(np.float64(k_B[ib, jb, c]), 0.0), 1e30)
+                oA = min(kA * rr, 80.0)
+                oB = min(kB * rr, 80.0)
+                A = np.exp(-oA)
+                eB = np.exp(-oB)
+                B = B_inf[c] * -np.expm1(-oB)
                 x = scale * np.float64(img[i, j, c])
                 if linear:
                     x = _srgb_to_linear(x)
+                Ae = max(A, a_min)
                 if has_prior:
                     v = (A * (x - B) + lam2[c] * np.float64(prior[i, j, c])) / (A * A + lam2[c])
-                    cmin = min(cmin, A * A / (A * A + lam2[c]))
+                    gain = A / (A * A + lam2[c])
+                    share = lam2[c] / (A * A + lam2[c])  # the model's share of v
+                    model2 = share * share * var2[1, c]
                 else:
-                    Ae = max(A, a_min)
-                    cmin = min(cmin, np.log(Ae * max_gain) / log_g)
                     v = (x - B) / Ae
+                    gain = 1.0 / Ae
+                    model2 = 0.0
                 if v < 0.0 or v > 1.0:
                     clip = True
                     v = min(max(v, 0.0), 1.0)
+                # expected error of v (the twin: pipeline.restore.dewater.expected_error)
+                dA = v * oA * sigma[0, c]
+                dB = ((B_inf[c] * oB * eB * sigma[1, c]) ** 2
+                      + (B_inf[c] * (1.0 - B_inf[c]) * -np.expm1(-oB) * sigma[2, c]) ** 2)
+                e = np.sqrt(dA * dA + dB / (Ae * Ae) + var2[0, c] * gain * gain + model2)
                 if linear:
-                    v = _linear_to_srgb(v)
+                    s0 = _linear_to_srgb(v)
+                    e = max(_linear_to_srgb(min(v + e, 1.0)) - s0, s0 - _linear_to_srgb(max(v - e, 0.0)))
+                    v = s0
+                else:
+                    e = min(e, 1.0)
+                err2 += e * e
                 J[i, j, c] = int(v * out_max + 0.5)
-            conf[i, j] = max(cmin, 0.0)
+            conf[i, j] = tau2 / (tau2 + err2 / 3.0)
             if clip:
                 clipped[i] += 1
     return conf, clipped.sum()

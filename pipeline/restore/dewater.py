@@ -10,11 +10,15 @@ Rules (docs/DECISIONS.md, "Restoring the originals"):
   Where the water lets light through (A ≫ λ) this is (I − B)/A, the photo's own detail; where it does not (far
   range, red in turbid water) the photo's signal is below its noise and J leans on the model, which saw that
   surface from nearer views. The gain dJ/dI = A / (A² + λ²) is at most 1/(2λ) ≤ ``max_gain``: no channel is
-  ever amplified more. Confidence c = min over channels of A² / (A² + λ²): the photo's share of the result
-  (1: all the photo's own, 0: all the model's); 0 where there is no surface.
-- Without a prior (a bare photo and a medium): the gain cap A_eff = max(A, 1/max_gain) per channel, and
-  c = min over channels of ln(A_eff·g) / ln g, g = max_gain: 1 where the water attenuates nothing, 0 where a
-  channel reaches the cap (its restoration is then only partial, and dark); 0 where there is no surface.
+  ever amplified more.
+- Without a prior (a bare photo and a medium): the gain cap A_eff = max(A, 1/max_gain) per channel.
+- Confidence is the expected error e of the restored pixel turned into [0, 1]: c = τ² / (τ² + mean_c e_c²),
+  τ = :data:`CONFIDENCE_ERROR` (c = 1/2 where the expected error is τ, in the output's sRGB units); 0 where
+  there is no surface. e_c (:func:`expected_error`) propagates what is known to be uncertain through
+  J = (I − B)/A: the water's coefficients (σ of log k_A, log k_B and logit B∞, the fit's posterior from
+  ``pipeline.medium.estimate``: an error δ in log k_A scales J by e^(k_A·r·δ), one in B shifts it by δB/A)
+  and the photo's noise times the gain. It grows with range, with J and where A is small, which is where
+  the restorations measured wrong (docs/DECISIONS.md, "Confidence as expected error").
 - No surface (alpha < 0.5, outside the render camera, or z ≤ 0): nothing is invented, J is the photo's pixel
   unchanged.
 - J is clipped to [0, 1]; the count of surface pixels with any channel clipped is returned.
@@ -35,6 +39,10 @@ SPACES = ("srgb", "linear")
 # whatever the measurement says. Texture finer than a pixel looks like noise to it (white, no lag-1
 # correlation): on bench/restore.py's frame, whose texture has a white component, it measured λ² = 8.5e7.
 MAX_PRIOR_WEIGHT = 1.0
+CONFIDENCE_ERROR = 0.1  # τ: the expected error (sRGB, [0, 1]) at which the confidence is 1/2
+# The water's uncertainty when nothing measured it (rows: log k_A, log k_B, logit B∞): the water type's prior
+# (pipeline.medium.estimate.PRIOR_SIGMA_LOG, a factor of 3) on both coefficients, and 1 on the veil's logit.
+UNMEASURED_SIGMA = np.array([[np.log(3.0)] * 3, [np.log(3.0)] * 3, [1.0] * 3])
 
 
 def _check(max_gain: float, space: str) -> None:
@@ -53,6 +61,7 @@ def _k(k: np.ndarray) -> np.ndarray:
 def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray, k_B: np.ndarray,
             B_inf: np.ndarray, *, max_gain: float = 8.0, space: str = "srgb", out_max: int = 255,
             scale: float | None = None, prior: np.ndarray | None = None, lam2: np.ndarray | None = None,
+            sigma: np.ndarray | None = None, noise2: np.ndarray | None = None, detail2: np.ndarray | None = None,
             ) -> tuple[np.ndarray, np.ndarray, int]:
     """Restore a block of pixels.
 
@@ -65,6 +74,9 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
         scale: multiplies img to [0, 1]; default from its dtype (1/255, 1/65535, 1).
         prior: [n, W, 3] the model's J of each pixel in the physics' space (linear light for "linear"), or None.
         lam2: [3] the prior's weight λ² per channel (:func:`prior_weights`); default and floor (0.5/max_gain)².
+        sigma: [3, 3] the water's uncertainty (rows log k_A, log k_B, logit B∞; columns channels); default
+        :data:`UNMEASURED_SIGMA`. noise2: [3] the photo's noise variance (physics space); detail2: [3] what the
+        model lacks, as a variance of J (:meth:`pipeline.restore.frame.FrameRestorer.calibrate`); defaults 0.
     Returns (J [n, W, 3] uint8 or uint16, confidence [n, W] float32 in [0, 1], clipped pixel count)."""
     from pipeline.restore._kernels import dewater as kernel
 
@@ -77,8 +89,51 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
                            np.asarray(B_inf, np.float64).reshape(3), float(max_gain), space == "linear", J,
                            int(out_max), np.ascontiguousarray(prior if prior is not None else np.zeros((1, 1, 3)),
                                                               np.float32), prior is not None,
-                           _lam2(lam2, max_gain))
+                           _lam2(lam2, max_gain), _sigma(sigma), np.stack([_noise2(noise2), _noise2(detail2)]),
+                           float(CONFIDENCE_ERROR))
     return J, conf, int(clipped)
+
+
+def _sigma(sigma: np.ndarray | None) -> np.ndarray:
+    """[3, 3] float64, finite and ≥ 0; None or a non-finite entry → :data:`UNMEASURED_SIGMA`'s."""
+    if sigma is None:
+        return UNMEASURED_SIGMA.copy()
+    s = np.asarray(sigma, np.float64).reshape(3, 3)
+    return np.ascontiguousarray(np.where(np.isfinite(s), np.maximum(s, 0.0), UNMEASURED_SIGMA))
+
+
+def _noise2(noise2: np.ndarray | None) -> np.ndarray:
+    return np.zeros(3) if noise2 is None else np.maximum(np.nan_to_num(np.asarray(noise2, np.float64).reshape(3)), 0)
+
+
+def expected_error(J: np.ndarray, r: np.ndarray, k_A: np.ndarray, k_B: np.ndarray, B_inf: np.ndarray,
+                   A_eff: np.ndarray, gain: np.ndarray, sigma: np.ndarray | None = None,
+                   noise2: np.ndarray | None = None, model_share: np.ndarray | float = 0.0,
+                   detail2: np.ndarray | None = None) -> np.ndarray:
+    """The expected error of a restored value J (physics space, [0, 1]) per channel, first order:
+    e² = (J·k_A·r·σ_A)² + ((B∞·k_B·r·e^(−k_B r)·σ_B)² + (B∞(1 − B∞)(1 − e^(−k_B r))·σ_∞)²) / A_eff²
+         + σ_n²·gain² + (m·σ_d)²:
+    an error δ in log k_A scales J by e^(k_A·r·δ); one in log k_B or logit B∞ moves B, and J by δB/A_eff; the
+    photo's noise σ_n comes through the gain dJ/dI; the model's share m = λ²/(A² + λ²) of J brings what the
+    model lacks, σ_d. J, r[..., None], k_A, k_B, A_eff, gain, model_share broadcast to [..., 3]. Float64 numpy;
+    the reference for the kernel's loop."""
+    s = _sigma(sigma)
+    oA = np.minimum(np.asarray(k_A, np.float64) * r, 80.0)
+    oB = np.minimum(np.asarray(k_B, np.float64) * r, 80.0)
+    dA = J * oA * s[0]
+    dB = (B_inf * oB * np.exp(-oB) * s[1]) ** 2 + (B_inf * (1 - B_inf) * -np.expm1(-oB) * s[2]) ** 2
+    return np.sqrt(dA**2 + dB / A_eff**2 + _noise2(noise2) * gain**2 + (model_share**2) * _noise2(detail2))
+
+
+def confidence_from_error(J: np.ndarray, e: np.ndarray, linear: bool) -> np.ndarray:
+    """τ² / (τ² + mean_c e_c²) with e in the output's units: for ``linear`` physics, the sRGB values J ± e span
+    (the larger side), else e (capped at 1). J, e [..., 3] → [...]."""
+    if linear:
+        s0 = linear_to_srgb(J)
+        e = np.maximum(linear_to_srgb(np.minimum(J + e, 1.0)) - s0, s0 - linear_to_srgb(np.maximum(J - e, 0.0)))
+    else:
+        e = np.minimum(e, 1.0)
+    return CONFIDENCE_ERROR**2 / (CONFIDENCE_ERROR**2 + (e**2).mean(-1))
 
 
 def _lam2(lam2: np.ndarray | None, max_gain: float) -> np.ndarray:
@@ -105,7 +160,8 @@ def prior_weights(residual_sq: np.ndarray, residual_lag: np.ndarray, a_sq: np.nd
 
 def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,
                       max_gain: float = 8.0, space: str = "srgb", prior: np.ndarray | None = None,
-                      lam2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+                      lam2: np.ndarray | None = None, noise2: np.ndarray | None = None,
+                      detail2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Slow twin of :func:`dewater` (numpy, float64, unquantised). img float [n, W, 3] in [0, 1].
     Returns (J float64 [n, W, 3] in [0, 1], confidence [n, W], clipped pixel count)."""
     _check(max_gain, space)
@@ -117,15 +173,18 @@ def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, mediu
     Ae = np.maximum(A, 1.0 / max_gain)
     if prior is None:
         raw = (x - B) / Ae
-        share = np.log(Ae * max_gain) / np.log(max_gain)
+        gain, share = 1.0 / Ae, 0.0
     else:
         l2 = _lam2(lam2, max_gain)
         raw = (A * (x - B) + l2 * np.asarray(prior, np.float64)) / (A * A + l2)
-        share = A * A / (A * A + l2)
+        gain, share = A / (A * A + l2), l2 / (A * A + l2)
     J = np.clip(raw, 0, 1)
+    kA, kB = (np.clip(np.nan_to_num(k, nan=0.0), 0, 1e30) for k in (medium.k_A, medium.k_B))
+    e = expected_error(J, rr, kA, kB, medium.B_inf, Ae, gain, medium.sigma, noise2, share, detail2)
+    conf = confidence_from_error(J, e, space == "linear")
     J = linear_to_srgb(J) if space == "linear" else J
     surface = np.asarray(surface, bool)
     J = np.where(surface[..., None], J, np.clip(img, 0, 1))
-    conf = np.where(surface, np.maximum(share.min(-1), 0.0), 0.0)
+    conf = np.where(surface, conf, 0.0)
     clipped = int((surface & ((raw < 0) | (raw > 1)).any(-1)).sum())
     return J, conf, clipped

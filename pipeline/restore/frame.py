@@ -116,6 +116,8 @@ class FrameRestorer:
         self.jmap = None if view.J is None else np.ascontiguousarray(
             fill_invalid(np.asarray(view.J, np.float64), ok), np.float32)  # [h, w, 3], no holes to bleed in
         self.lam2: np.ndarray | None = None  # the prior's weight per channel (calibrate); None: its floor
+        self.noise2: np.ndarray | None = None  # the photo's noise variance per channel (calibrate); None: 0
+        self.detail2: np.ndarray | None = None  # what the model lacks, as a variance of J (calibrate); None: 0
         logger.debug("restore %dx%d: lens grid step %d (%.4f px), filter r=%d s=%d halo=%d", lens.width,
                      lens.height, self.grid.step, self.grid.error, self.radius, self.s, self.halo)
 
@@ -159,6 +161,8 @@ class FrameRestorer:
         if n_lag < 100:
             return None
         self.lam2 = prior_weights(sums[0] / n_sq, sums[1] / n_lag, sums[2] / n_sq, self.opt.max_gain)
+        self.noise2 = np.maximum(sums[0] / n_sq - sums[1] / n_lag, 0.0)  # the white part: the photo's noise
+        self.detail2 = np.maximum(sums[1] / n_lag, 0.0) / np.maximum(sums[2] / n_sq, 1e-12)  # what the model lacks
         return self.lam2
 
     def _geometry(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
@@ -197,7 +201,8 @@ class FrameRestorer:
         photo = rows[y0 - e0:y1 - e0]
         m = self.view.medium
         J, conf, clipped = dewater(photo, r, surface, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
-                                   space=self.opt.space, out_max=out_max, scale=scale, prior=prior, lam2=self.lam2)
+                                   space=self.opt.space, out_max=out_max, scale=scale, prior=prior, lam2=self.lam2,
+                                   sigma=m.sigma, noise2=self.noise2, detail2=self.detail2)
         w = near
         if w.any():
             x = photo.astype(np.float32) * np.float32(scale)

@@ -50,3 +50,17 @@ def coefficients_from_maps(A: np.ndarray, B: np.ndarray, r: np.ndarray, B_inf: n
     k = fill_invalid(np.concatenate([kA, kB], -1), valid)
     k = np.clip(np.nan_to_num(k, nan=0.0, posinf=0.0), 0.0, None).astype(np.float32)
     return MediumMaps(k[..., :3].copy(), k[..., 3:].copy(), binf.copy())
+
+
+def water_sigma(train_result: dict | None) -> np.ndarray | None:
+    """The water's uncertainty [3, 3] (rows σ of log k_A, log k_B, logit B∞; columns channels) from a job's
+    train.json: the posterior σ of the sparse points' fit (``pipeline.medium.estimate``; a coefficient the fit
+    could not determine is NaN, i.e. the water type's prior width downstream). None when nothing measured the
+    water: :data:`pipeline.restore.dewater.UNMEASURED_SIGMA` then."""
+    est = ((train_result or {}).get("medium") or {}).get("estimate") or {}
+    unc = est.get("uncertainty") or {}
+    try:
+        rows = [[np.nan if x is None else float(x) for x in unc[k]["sigma"]] for k in ("beta_D", "beta_B", "B_inf")]
+        return np.asarray(rows, np.float64).reshape(3, 3)
+    except (KeyError, TypeError, ValueError):
+        return None

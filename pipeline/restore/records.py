@@ -28,6 +28,9 @@ class MediumMaps:
     k_A: np.ndarray
     k_B: np.ndarray
     B_inf: np.ndarray
+    # [3, 3] the water's uncertainty: σ of log k_A, log k_B, logit B∞ (rows) per channel (columns), for the
+    # confidence map (pipeline.restore.dewater.expected_error); None: not measured (the water type's prior).
+    sigma: np.ndarray | None = None
 
     @property
     def constant(self) -> bool:

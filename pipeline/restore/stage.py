@@ -20,7 +20,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     from pipeline.job.markers import atomic_write_json
     from pipeline.job.options import JobCancelled
-    from pipeline.restore.views import NOTHING_TO_RESTORE, lens_cameras, rendered_view, restore_photo
+    from pipeline.restore.views import NOTHING_TO_RESTORE, job_water_sigma, lens_cameras, rendered_view, restore_photo
     from pipeline.scene.images import list_images
     from pipeline.synth.ground_truth import find_ground_truth
     from pipeline.train.checkpoint import load_checkpoint
@@ -40,6 +40,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.evaluate.rerender import training_views
 
     views = training_views(job, state)
+    sigma = job_water_sigma(job)
     lenses = lens_cameras(layout.scene)
     photos = {p.name for p in list_images(layout.images)}
     gt = find_ground_truth(opts.source, opts.ground_truth)
@@ -54,8 +55,8 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         if gt is not None:
             renders[view.name] = displayed(out, model.colour_space).J
         stats = restore_photo(src, layout.restored, layout.confidence, lenses[view.name],
-                              rendered_view(model, view, out=out), max_gain=opts.max_gain, fmt=opts.restore_format,
-                              space=model.colour_space)
+                              rendered_view(model, view, out=out, sigma=sigma), max_gain=opts.max_gain,
+                              fmt=opts.restore_format, space=model.colour_space)
         per_view.append({"name": view.name, **stats, "seconds": round(time.perf_counter() - t0, 3)})
         ctx.on_progress("restore", (k + 1) / len(views), f"restored {k + 1}/{len(views)} photos")
     registered = {v.name for v in views}

@@ -25,6 +25,17 @@ class LensModelError(FileNotFoundError):
     """The job has no model of its photos' lens (SfM's model before undistortion)."""
 
 
+def job_water_sigma(job: Path) -> np.ndarray | None:
+    """:func:`pipeline.restore.medium.water_sigma` of the job's train.json (None when it has none)."""
+    import json
+
+    from pipeline.job.layout import JobLayout
+    from pipeline.restore.medium import water_sigma
+
+    path = JobLayout(job).train_result
+    return water_sigma(json.loads(path.read_text())) if path.is_file() else None
+
+
 def lens_cameras(scene_dir: Path) -> dict[str, LensCamera]:
     """Image name -> its lens camera, from the SfM output ``scene_dir`` (``distorted/sparse/0``: the camera
     model bundle adjustment refined, at the photos' own resolution)."""
@@ -38,12 +49,13 @@ def lens_cameras(scene_dir: Path) -> dict[str, LensCamera]:
     return read_lenses(sparse)
 
 
-def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: ViewOutputs | None = None
-                  ) -> RenderedView:
+def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: ViewOutputs | None = None,
+                  sigma: np.ndarray | None = None) -> RenderedView:
     """The model's depth, alpha and water for ``view`` (training camera), from ``out`` when the caller rendered
     it already. The homogeneous medium is three per-channel constants (exact at any resolution); a network
     medium's per-pixel A and B become effective coefficients
-    (:func:`pipeline.restore.medium.coefficients_from_maps`)."""
+    (:func:`pipeline.restore.medium.coefficients_from_maps`). ``sigma``: the water's uncertainty
+    (:func:`pipeline.restore.medium.water_sigma`), for the confidence maps."""
     from pipeline.restore.medium import coefficients_from_maps
 
     medium = model.medium
@@ -60,6 +72,7 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: V
         r = out.depth * ray_length_factor(view.camera)
         assert out.A is not None and out.B is not None
         maps = coefficients_from_maps(out.A, out.B, r, binf, out.alpha)
+    maps.sigma = sigma
     # the model's own J where it covers the pixel (premultiplied over black: normalised by alpha), in the space
     # its physics ran in: the restoration's prior where the photo's signal is too weak
     J = np.clip(out.J / np.maximum(out.alpha, 0.5)[..., None], 0.0, 1.0).astype(np.float32)

@@ -18,13 +18,13 @@ def test_gain_cap_holds_per_channel():
         J, c, _ = dewater(img, r, surf, np.array([0.5, 0.2, 0.1]), np.zeros(3), np.zeros(3), max_gain=g,
                           out_max=65535)
         assert _gain(J, img, surf).max() <= g * (1 + 1e-4)
-        assert c[:, -1].max() == 0 and c[:, 0].min() == 1  # at the cap: 0; no water: 1
+        assert c[:, -1].max() < 0.011 and c[:, 0].min() == 1  # at the cap: an expected error ≥ 1; no water: 1
         assert (np.diff(c[0]) <= 1e-7).all()  # confidence falls with range
 
 
 def test_with_the_models_prior_the_gain_never_exceeds_the_cap_and_far_pixels_lean_on_the_model():
     """J = (A(I − B) + λ²J_m) / (A² + λ²), λ = 1/(2 max_gain): dJ/dI ≤ max_gain at every range; near, the photo's
-    own (I − B)/A; far, the model's J_m; the confidence is the photo's share A² / (A² + λ²)."""
+    own (I − B)/A; far, the model's J_m. The confidence is 1 with no water between and falls with range."""
     W = 200
     r = np.tile(np.linspace(0, 60, W, dtype=np.float32), (2, 1))
     surf = np.ones((2, W), bool)
@@ -36,12 +36,36 @@ def test_with_the_models_prior_the_gain_never_exceeds_the_cap_and_far_pixels_lea
         J1, _, _ = dewater(hi, r, surf, kA, kB, binf, max_gain=g, out_max=65535, prior=prior)
         gain = (J1.astype(np.float64) - J0) / 65535 / 0.01
         assert gain.max() <= g * (1 + 1e-3) and gain.max() > 0.9 * g  # the cap is reached, never passed
-        assert abs(c[0, 0] - 1 / (1 + (0.5 / g) ** 2)) < 1e-6 and c[0, -1] < 1e-3 and (np.diff(c[0]) <= 1e-7).all()
+        assert c[0, 0] == 1 and c[0, -1] < 0.02 and (np.diff(c[0]) <= 1e-7).all()
     A_far = np.exp(-kA * 60)
     assert np.allclose(J0[0, -1] / 65535, 0.4, atol=2e-3 + A_far.max())  # far: the model's value
     B0 = binf * -np.expm1(-kB * float(r[0, 1]))
     near = (0.30 - B0) / np.exp(-kA * float(r[0, 1]))
     assert np.allclose(J0[0, 1] / 65535, near, atol=2e-3)  # near: the photo's own (I − B)/A
+
+
+def test_confidence_is_the_expected_error_of_the_water_and_the_noise():
+    """c = τ²/(τ² + mean e²): 1 for a known water and a noiseless photo; lower everywhere as the water's σ or
+    the photo's noise grows; 1/2 where the expected error is τ (one channel's β_D known to a log-σ s: e = J·k·r·s)."""
+    W = 60
+    r = np.tile(np.linspace(0.5, 8, W, dtype=np.float32), (2, 1))
+    surf = np.ones((2, W), bool)
+    img = np.full((2, W, 3), 0.3, np.float32)
+    kA, kB, binf = np.array([0.4, 0.15, 0.1]), np.array([0.3, 0.15, 0.1]), np.array([0.1, 0.25, 0.3])
+    conf = {}
+    cases = (("known", np.zeros((3, 3)), None), ("measured", np.full((3, 3), 0.1), None),
+             ("loose", np.full((3, 3), 0.3), None), ("noisy", np.full((3, 3), 0.1), np.full(3, 1e-3)))
+    for name, sigma, noise2 in cases:
+        _, conf[name], _ = dewater(img, r, surf, kA, kB, binf, max_gain=50.0, sigma=sigma, noise2=noise2)
+    assert (conf["known"] == 1).all()
+    assert (conf["loose"] < conf["measured"]).all() and (conf["noisy"] < conf["measured"]).all()
+    assert (np.diff(conf["measured"][0]) < 0).all()  # falls with range
+    # one uncertain coefficient: β_D of red; e = J·k·r·s with J the restored red, the other channels exact
+    sigma = np.zeros((3, 3))
+    sigma[0, 0] = 0.2
+    J, c, _ = dewater(img, r, surf, kA, kB, binf, max_gain=50.0, sigma=sigma, out_max=65535)
+    e = J[..., 0] / 65535 * kA[0] * r * 0.2
+    assert np.allclose(c, 0.01 / (0.01 + np.minimum(e, 1) ** 2 / 3), atol=2e-4)
 
 
 def test_no_surface_is_the_photo_with_zero_confidence():

@@ -40,12 +40,16 @@ def test_dewater_matches_reference_both_spaces_and_map_coefficients():
     r = rng.uniform(0, 20, (13, 29)).astype(np.float32)
     surf = rng.random((13, 29)) > 0.2
     for kA, kB in (([0.3, 0.1, 0.05], [0.2, 0.1, 0.1]), (rng.random((13, 29, 3)), rng.random((13, 29, 3)))):
-        m = MediumMaps(np.asarray(kA, np.float32), np.asarray(kB, np.float32), np.array([0.1, 0.2, 0.3]))
+        sigma = np.array([[0.1, 0.2, np.nan], [0.3, 0.05, 0.1], [0.2, 0.2, 0.4]])  # NaN: not determined
+        m = MediumMaps(np.asarray(kA, np.float32), np.asarray(kB, np.float32), np.array([0.1, 0.2, 0.3]), sigma)
+        noise2 = np.array([1e-4, 4e-5, 2e-4])
         for space, prior in (("srgb", None), ("linear", None), ("srgb", rng.random((13, 29, 3)).astype(np.float32)),
                              ("linear", rng.random((13, 29, 3)).astype(np.float32))):
             lam2 = None if prior is None else np.array([0.01, 0.2, 0.0])  # the last under the floor: floored
             J, c, n = dewater(img, r, surf, m.k_A, m.k_B, m.B_inf, space=space, out_max=65535, prior=prior,
-                              lam2=lam2)
-            Jr, cr, nr = dewater_reference(img, r, surf, m, space=space, prior=prior, lam2=lam2)
+                              lam2=lam2, sigma=sigma, noise2=noise2, detail2=noise2[::-1] * 10)
+            Jr, cr, nr = dewater_reference(img, r, surf, m, space=space, prior=prior, lam2=lam2, noise2=noise2,
+                                           detail2=noise2[::-1] * 10)
             assert np.abs(J / 65535 - Jr).max() < 2e-5  # quantisation 7.6e-6 + float32 inputs
             assert np.abs(c - cr).max() < 1e-5 and n == nr
+            assert 0 < c[surf].min() and c[surf].max() < 1 and c.std() > 0.05  # not a constant map
