@@ -119,3 +119,22 @@ def test_prior_weights_separate_the_photos_noise_from_what_the_model_lacks():
     # within 30 %: detail that is not perfectly smooth (lag-1 correlation 0.97 here) counts partly as noise
     assert np.allclose(lam2, (sn / sd) ** 2, rtol=0.3), (lam2, (sn / sd) ** 2)
     assert (prior_weights(np.full(3, 1e-6), np.full(3, 1e-6), np.ones(3), 8.0) == (0.5 / 8) ** 2).all()
+
+
+def test_the_waters_uncertainty_comes_from_the_fit_and_falls_back_on_the_prior():
+    """``water_sigma`` reads train.json's fit; a coefficient it could not determine (None) and a job without a fit
+    take the water type's prior width, which gives a lower confidence than a measured water."""
+    from pipeline.restore.dewater import UNMEASURED_SIGMA, _sigma
+    from pipeline.restore.medium import water_sigma
+
+    unc = {"beta_D": {"sigma": [0.1, 0.1, 0.1]}, "beta_B": {"sigma": [0.2, None, 0.2]}, "B_inf": {"sigma": [0.05] * 3}}
+    s = water_sigma({"medium": {"estimate": {"uncertainty": unc}}})
+    assert s.shape == (3, 3) and s[0, 0] == 0.1 and np.isnan(s[1, 1])
+    assert _sigma(s)[1, 1] == UNMEASURED_SIGMA[1, 1] and _sigma(s)[2, 2] == 0.05
+    assert water_sigma({"medium": None}) is None and water_sigma(None) is None
+    r = np.full((1, 5), 3.0, np.float32)
+    args = (np.full((1, 5, 3), 0.3, np.float32), r, np.ones((1, 5), bool), np.array([0.3, 0.1, 0.1]),
+            np.array([0.2, 0.1, 0.1]), np.array([0.1, 0.2, 0.3]))
+    measured = dewater(*args, sigma=s)[1]
+    unmeasured = dewater(*args, sigma=None)[1]
+    assert (unmeasured < measured).all()
