@@ -27,6 +27,10 @@ pytestmark = [pytest.mark.slow,
 
 # per water: (least gain over the photo on every held-out view, least pooled gain), dB; measured gains above
 FLOORS = {"turbid": (1.0, 1.5), "medium": (2.0, 2.5)}
+# per water: the confidence map's correlation with the restored error over the training photos must be below
+# this (low confidence where the error is high). Measured 2026-11-27: turbid −0.26, medium −0.16; with the
+# photo's-share confidence it replaced, −0.10 and −0.09 (the held-out pair: −0.01 / +0.10, before +0.01 / −0.13).
+CONFIDENCE_CORRELATION = {"turbid": -0.15, "medium": -0.05}
 
 
 @pytest.mark.parametrize("preset", ["turbid", "medium"])
@@ -46,6 +50,10 @@ def test_photo_textured_water_keeps_its_scene_and_is_restored(tmp_path, preset, 
     assert not q["collapsed"] and q["warnings"] == [], q["warnings"]
     assert q["point_coverage_min"] >= 0.98  # no training view lost its seabed
     assert q["n_gaussians"] >= 0.2 * q["budget"], (q["n_gaussians"], q["budget"])
+    truth = json.loads(JobLayout(tmp_path / "job").restore_result.read_text())["truth"]
+    record_property("confidence_error_correlation", {k: truth[k]["confidence_error_correlation"]
+                                                     for k in ("train", "test")})
     per_view, pooled = FLOORS[preset]
     assert min(gains) >= per_view, gains
     assert rest["restored"]["psnr"] >= rest["input"]["psnr"] + pooled
+    assert truth["train"]["confidence_error_correlation"] < CONFIDENCE_CORRELATION[preset], truth["train"]
