@@ -394,8 +394,7 @@ class _Attempt:
         if len(names) < MIN_IMAGES:
             raise TooFewImagesError(_too_few_msg(len(names), images_dir), skipped=self.skipped)
         if self.matcher == "sequential" and self.cfg.loop_detection:
-            self._timed("vocab", build_vocab_tree, db_path, distorted / "vocab_tree.bin", self.cfg.num_threads,
-                        self.cfg.seed)
+            self._timed("vocab", build_vocab_tree, db_path, distorted / "vocab_tree.bin", self.cfg.seed)
         self._timed("match", _match, db_path, self.matcher, self.cfg, self.token, distorted / "vocab_tree.bin")
         self.stats = _pair_stats(db_path, self.cfg.sequential_overlap)
         if _num_inlier_matches(db_path) == 0:

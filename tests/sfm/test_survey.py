@@ -69,7 +69,7 @@ def test_sequential_matching_finds_loops_on_its_own_vocabulary(tmp_path: Path) -
     assert tree.stat().st_size > 10_000
     # Seeded: the same database gives the same tree, byte for byte (unseeded builds differed).
     again = tmp_path / "again.bin"
-    build_vocab_tree(tmp_path / "out" / "distorted" / "database.db", again, num_threads=2, seed=cfg.seed)
+    build_vocab_tree(tmp_path / "out" / "distorted" / "database.db", again, seed=cfg.seed)
     assert again.read_bytes() == tree.read_bytes()
     assert "vocab" in s.phase_seconds
     # Window 2 plus quadratic jumps pair 12 frames 2+... ways; loop pairs are those at other distances (3, 5, 6..)
