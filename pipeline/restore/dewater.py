@@ -89,7 +89,7 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
                            np.asarray(B_inf, np.float64).reshape(3), float(max_gain), space == "linear", J,
                            int(out_max), np.ascontiguousarray(prior if prior is not None else np.zeros((1, 1, 3)),
                                                               np.float32), prior is not None,
-                           _lam2(lam2, max_gain), _sigma(sigma), np.stack([_noise2(noise2), _noise2(detail2)]),
+                           _lam2(lam2, max_gain), _sigma(sigma), np.stack([_variance(noise2), _variance(detail2)]),
                            float(CONFIDENCE_ERROR))
     return J, conf, int(clipped)
 
@@ -102,8 +102,9 @@ def _sigma(sigma: np.ndarray | None) -> np.ndarray:
     return np.ascontiguousarray(np.where(np.isfinite(s), np.maximum(s, 0.0), UNMEASURED_SIGMA))
 
 
-def _noise2(noise2: np.ndarray | None) -> np.ndarray:
-    return np.zeros(3) if noise2 is None else np.maximum(np.nan_to_num(np.asarray(noise2, np.float64).reshape(3)), 0)
+def _variance(v: np.ndarray | None) -> np.ndarray:
+    """A per-channel variance [3] float64, finite and ≥ 0; None → 0."""
+    return np.zeros(3) if v is None else np.maximum(np.nan_to_num(np.asarray(v, np.float64).reshape(3)), 0)
 
 
 def expected_error(J: np.ndarray, r: np.ndarray, k_A: np.ndarray, k_B: np.ndarray, B_inf: np.ndarray,
@@ -122,7 +123,7 @@ def expected_error(J: np.ndarray, r: np.ndarray, k_A: np.ndarray, k_B: np.ndarra
     oB = np.minimum(np.asarray(k_B, np.float64) * r, 80.0)
     dA = J * oA * s[0]
     dB = (B_inf * oB * np.exp(-oB) * s[1]) ** 2 + (B_inf * (1 - B_inf) * -np.expm1(-oB) * s[2]) ** 2
-    return np.sqrt(dA**2 + dB / A_eff**2 + _noise2(noise2) * gain**2 + (model_share**2) * _noise2(detail2))
+    return np.sqrt(dA**2 + dB / A_eff**2 + _variance(noise2) * gain**2 + (model_share**2) * _variance(detail2))
 
 
 def confidence_from_error(J: np.ndarray, e: np.ndarray, linear: bool) -> np.ndarray:
@@ -153,9 +154,18 @@ def prior_weights(residual_sq: np.ndarray, residual_lag: np.ndarray, a_sq: np.nd
 
     Args (each [3], means over the surface pixels of the sampled rows): residual_sq E[e²], residual_lag
     E[e_x·e_x+1], a_sq E[A²]. Returns lam2 [3], at most :data:`MAX_PRIOR_WEIGHT`."""
+    noise, detail = noise_and_detail(residual_sq, residual_lag, a_sq)
+    return _lam2(np.minimum(noise / detail, MAX_PRIOR_WEIGHT), max_gain)
+
+
+def noise_and_detail(residual_sq: np.ndarray, residual_lag: np.ndarray, a_sq: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(σ_n², σ_d²) per channel from a photo's residual against the model (:func:`prior_weights`): the white
+    part E[e²] − E[e_x e_x+1] is the photo's noise, the correlated part over E[A²] what the model lacks (as a
+    variance of J). Each floored at 1e-12."""
     noise = np.maximum(residual_sq - residual_lag, 1e-12)
     detail = np.maximum(residual_lag, 1e-12) / np.maximum(a_sq, 1e-12)
-    return _lam2(np.minimum(noise / detail, MAX_PRIOR_WEIGHT), max_gain)
+    return noise, detail
 
 
 def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,

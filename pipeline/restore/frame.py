@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from pipeline.restore.dewater import dewater, prior_weights
+from pipeline.restore.dewater import dewater, noise_and_detail, prior_weights
 from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.guided import (
     DEFAULT_EPS,
@@ -160,9 +160,9 @@ class FrameRestorer:
             n_sq, n_lag = n_sq + int(surface.sum()), n_lag + int(both.sum())
         if n_lag < 100:
             return None
-        self.lam2 = prior_weights(sums[0] / n_sq, sums[1] / n_lag, sums[2] / n_sq, self.opt.max_gain)
-        self.noise2 = np.maximum(sums[0] / n_sq - sums[1] / n_lag, 0.0)  # the white part: the photo's noise
-        self.detail2 = np.maximum(sums[1] / n_lag, 0.0) / np.maximum(sums[2] / n_sq, 1e-12)  # what the model lacks
+        measured = (sums[0] / n_sq, sums[1] / n_lag, sums[2] / n_sq)
+        self.lam2 = prior_weights(*measured, self.opt.max_gain)
+        self.noise2, self.detail2 = noise_and_detail(*measured)  # for the confidence's expected error
         return self.lam2
 
     def _geometry(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
