@@ -12,7 +12,6 @@ from pipeline.scene.loader import load_scene
 from pipeline.scene.records import Scene
 from pipeline.synth.procedural import generate_scene
 
-
 TESTS = Path(__file__).resolve().parent
 
 
