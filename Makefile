@@ -28,7 +28,7 @@ demo: install
 
 test: install
 	$(BIN)/ruff check pipeline service worker tests bench
-	$(BIN)/python -m pytest -q -n 2 --dist loadgroup
+	$(BIN)/python -m pytest -q -n 2
 
 lint: install
 	$(BIN)/ruff check pipeline service worker tests bench

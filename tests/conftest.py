@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from pipeline.config import SynthConfig
@@ -12,20 +10,20 @@ from pipeline.scene.loader import load_scene
 from pipeline.scene.records import Scene
 from pipeline.synth.procedural import generate_scene
 
-TESTS = Path(__file__).resolve().parent
 
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist's; without it installed, never called
+def pytest_xdist_make_scheduler(config, log):
+    """``make test`` runs two xdist workers (docs/DECISIONS.md, "The test suite on two workers"). Each worker takes
+    whole modules, so a module's fixtures (trained jobs) are built once; the service package goes whole to one
+    worker: its tests share the live stack's session fixtures and the browser, and some follow one another."""
+    from xdist.scheduler import LoadScopeScheduling
 
-def pytest_collection_modifyitems(config, items) -> None:
-    """Under pytest-xdist's ``--dist loadgroup`` (``make test`` runs two workers: docs/DECISIONS.md, "The test
-    suite on two workers"), a module runs whole on one worker, so its module-scoped fixtures (trained jobs) are
-    built once; and every service test runs on the same worker: they share the live stack's session fixtures,
-    the browser and the machine's Redis."""
-    if getattr(config.option, "dist", "no") != "loadgroup":
-        return
-    for item in items:
-        rel = Path(item.path).resolve().relative_to(TESTS)
-        group = "service" if rel.parts[0] == "service" else rel.as_posix()
-        item.add_marker(pytest.mark.xdist_group(group))
+    class ModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "tests/service" if module.startswith("tests/service/") else module
+
+    return ModuleScheduling(config, log)
 
 
 @pytest.fixture(scope="session")
