@@ -27,6 +27,7 @@ from pipeline.restore.views import NOTHING_TO_RESTORE
 from pipeline.synth.procedural import generate_scene
 
 ITERATIONS = 150
+pytestmark = pytest.mark.slow  # the module's job: SfM, training, restore (~90 s)
 
 
 @pytest.fixture(scope="module")

@@ -53,6 +53,7 @@ def _losses_and_grads(fn, medium, tensors, ev, estimate, depth_scale):
     return {k: v.detach() for k, v in terms.items()}, beta, {k: v.clone() for k, v in grads.items()}
 
 
+@pytest.mark.slow  # inductor compiles the medium's graph: 40-85 s
 @pytest.mark.parametrize("mode", ["homogeneous", "dualphys"])
 def test_compiled_medium_losses_match_the_eager_twin(mode):
     """Every weighted term within 1e-5 (relative) of eager's, and every gradient (the render's and the
