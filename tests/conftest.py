@@ -24,10 +24,7 @@ def pytest_collection_modifyitems(config, items) -> None:
     if not hasattr(config, "workerinput"):
         return
     slow = {_scope(it.nodeid) for it in items if it.get_closest_marker("slow")}
-    first = {}
-    for k, it in enumerate(items):
-        first.setdefault(_scope(it.nodeid), k)
-    items.sort(key=lambda it: (_scope(it.nodeid) not in slow, first[_scope(it.nodeid)]))
+    items.sort(key=lambda it: _scope(it.nodeid) not in slow)  # stable: scopes stay whole and in their order
 
 
 @pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist's; without it installed, never called
