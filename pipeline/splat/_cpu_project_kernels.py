@@ -203,6 +203,20 @@ def _jacobian(mc, fx, fy, lim, c):
     return fx / z, -fx * tx / (z * z), fy / z, -fy * ty / (z * z), tx, ty, cu != u, cv != v
 
 
+@njit(inline="always")
+def _no_gradient(n, radii, v_colors):
+    """Whether Gaussian n gets no gradient: culled in every camera (its means2d, conic and depth gradients are
+    ignored) and no colour gradient (the compositing gives none to culled Gaussians)."""
+    for c in range(radii.shape[0]):
+        if radii[c, n, 0] > 0 or radii[c, n, 1] > 0:
+            return False
+        if v_colors.shape[1] > 0:  # [C, 0, 3] without SH
+            for ch in range(v_colors.shape[2]):
+                if v_colors[c, n, ch] != 0.0:
+                    return False
+    return True
+
+
 _CHUNK = 256  # Gaussians per parallel work item (scratch buffers are allocated once per chunk)
 
 
@@ -222,9 +236,10 @@ def project_fwd(
         R, M, S, W = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         T3, Sc, basis = np.empty((3, 3)), np.empty((3, 3)), np.empty(16)
         for n in range(chunk * _CHUNK, min(N, (chunk + 1) * _CHUNK)):
-            _covariance(quats, scales, n, q, R, M, S)
             op = float(opacities[n])
             ext = min(math.sqrt(2.0 * math.log(max(op / ALPHA_MIN, 1.0))), MAX_EXTENT_SIGMAS)
+            smax2 = max(float(scales[n, 0]), float(scales[n, 1]), float(scales[n, 2])) ** 2
+            have_cov = False  # the covariance is computed for the first camera that may see the Gaussian
             for c in range(C):
                 means2d[c, n, 0] = 0.0
                 means2d[c, n, 1] = 0.0
@@ -248,10 +263,23 @@ def project_fwd(
                 z = mc[2]
                 if not (z >= near_plane and z <= far_plane) or op < ALPHA_MIN:
                     continue
+                j00, j02, j11, j12, tx, ty, clx, cly = _jacobian(mc, fx, fy, lim, c)
+                mx = fx * (mc[0] / z) + cx
+                my = fy * (mc[1] / z) + cy
+                # Cull off-screen Gaussians before their covariance (most of a survey's Gaussians are outside a
+                # given view): the conic's a = r0 Sc r0^T + eps2d <= |r0|^2 max(s)^2 + eps2d with r0 = J's first
+                # row (Sc = W R S^2 R^T W^T), likewise c, so these bounds are >= the radii below and a Gaussian
+                # they cull is culled by the exact test too (same outputs, the zeros written above).
+                rbx = ext * math.sqrt((j00 * j00 + j02 * j02) * smax2 + eps2d) * (1.0 + 1e-6) + 1.0
+                rby = ext * math.sqrt((j11 * j11 + j12 * j12) * smax2 + eps2d) * (1.0 + 1e-6) + 1.0
+                if mx + rbx <= 0 or mx - rbx >= width or my + rby <= 0 or my - rby >= height:
+                    continue
+                if not have_cov:
+                    _covariance(quats, scales, n, q, R, M, S)
+                    have_cov = True
                 _camera_rot(Wall, c, W)
                 _mm(W, S, T3)
                 _mm_bt(T3, W, Sc)
-                j00, j02, j11, j12, tx, ty, clx, cly = _jacobian(mc, fx, fy, lim, c)
                 # T = J Sc (2x3), cov2d = T J^T
                 t00 = j00 * Sc[0, 0] + j02 * Sc[2, 0]
                 t01 = j00 * Sc[0, 1] + j02 * Sc[2, 1]
@@ -264,8 +292,6 @@ def project_fwd(
                 det = a * cc - b * b
                 if not det > 0:
                     continue
-                mx = fx * (mc[0] / z) + cx
-                my = fy * (mc[1] / z) + cy
                 rx = math.ceil(ext * math.sqrt(a))
                 ry = math.ceil(ext * math.sqrt(cc))
                 if rx <= 0 and ry <= 0:
@@ -303,6 +329,16 @@ def project_bwd(
         gM, gm, gdir = np.empty((3, 3)), np.empty(3), np.empty(3)
         basis, wk = np.empty(16), np.empty(16)
         for n in range(chunk * _CHUNK, min(N, (chunk + 1) * _CHUNK)):
+            if _no_gradient(n, radii, v_colors):  # culled in every camera, no colour gradient: all zero
+                for i in range(3):
+                    v_means[n, i] = 0.0
+                    v_scales[n, i] = 0.0
+                for i in range(4):
+                    v_quats[n, i] = 0.0
+                for k in range(v_coeffs.shape[1]):
+                    for ch in range(3):
+                        v_coeffs[n, k, ch] = 0.0
+                continue
             qn = _covariance(quats, scales, n, q, R, M, S)
             gS[:] = 0.0  # dL/dSigma (world), summed over cameras
             gm[:] = 0.0  # dL/dmean

@@ -100,3 +100,40 @@ def test_numba_projection_matches_torch(sh_degree):
     for name, a, b in zip(("means", "quats", "scales", "coeffs"), ps[:n_grads], qs[:n_grads]):
         err = float((a.grad - b.grad).abs().max())
         assert err <= 1e-4 * float(b.grad.abs().max()), (name, err)
+
+
+@pytest.mark.parametrize("sh_degree", [None, 1])
+def test_numba_projection_culls_off_screen_gaussians_as_the_reference_does(sh_degree):
+    """The kernel culls off-screen Gaussians on a bound of their radius before computing their covariance: long
+    thin Gaussians, rotated at random, whose centres lie in a band around the image (so many exact radii end
+    within a pixel of the border) get the reference's radii and outputs, and the backward gives the culled ones
+    exactly zero gradient."""
+    from pipeline.splat._cpu_backend import _Project
+
+    n = 3000
+    g = torch.Generator().manual_seed(7)
+    z = 1.0 + 4.0 * torch.rand(n, generator=g)
+    uv = torch.rand(n, 2, generator=g) * torch.tensor([3.0, 3.0]) - 1.0  # -1..2 image widths / heights
+    means = torch.stack([(uv[:, 0] * W - W / 2) * z / 60.0, (uv[:, 1] * H - H / 2) * z / 60.0, z], dim=1)
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 1.5 - 2.5)  # anisotropic, up to metres
+    quats = torch.randn(n, 4, generator=g)
+    opac = torch.rand(n, generator=g) * 0.99 + 0.005
+    vm, Ks = _cameras()
+    coeffs = 0.3 * torch.randn(n, 4, 3, generator=g)
+    ps = [t.clone().requires_grad_() for t in (means, quats, scales, coeffs)]
+    m2, con, dep, col, radii, keys = _Project.apply(
+        ps[0], ps[1], ps[2], opac, ps[3] if sh_degree is not None else torch.zeros(n, 0, 3),
+        vm, Ks, W, H, sh_degree, 0.3, 0.01, 1e10,
+    )  # fmt: skip
+    ref = project_gaussians(means, quats, scales, opac, vm, Ks, W, H)
+    assert torch.equal(radii, ref.radii) and torch.equal(keys, ref.depth_keys)
+    culled = (radii == 0).all(-1).all(0)  # [N]: in both cameras
+    visible = (radii > 0).any(-1).any(0)
+    assert int(culled.sum()) > n // 4 and int(visible.sum()) > n // 4
+    torch.testing.assert_close(m2, ref.means2d, rtol=2e-7, atol=1e-7)
+    torch.testing.assert_close(con, ref.conics, rtol=2e-7, atol=1e-7)
+    loss = (m2 * torch.randn(m2.shape, generator=g)).sum() + (con * torch.randn(con.shape, generator=g)).sum()
+    loss.backward()
+    for p in ps[:3]:
+        assert torch.equal(p.grad[culled], torch.zeros_like(p.grad[culled]))
+        assert bool((p.grad[visible] != 0).any(-1).all())
