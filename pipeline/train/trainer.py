@@ -100,7 +100,12 @@ class Trainer:
         self.views, self.targets = prepare_images(scene.views, images, cfg.downscale, self.device)
         self.extent = scene_extent(self.views)
         torch.manual_seed(cfg.seed)  # gsplat's split samples from the global generator
-        self.gaussians = initial_gaussians(scene, cfg, self.extent, self.device)
+        # The SH bands the model renders: medium modes keep J view-consistent with low-order SH
+        # (MediumConfig.max_sh_degree). Only those are allocated: bands never rendered get no gradient, and Adam,
+        # densification and checkpoints would carry them as zeros (36 of 59 floats per Gaussian at degree 3).
+        self.max_sh_degree = cfg.sh_degree if cfg.mode == "3dgs" else min(cfg.sh_degree, cfg.medium.max_sh_degree)
+        self.gaussians = initial_gaussians(scene, replace(cfg, sh_degree=self.max_sh_degree), self.extent,
+                                           self.device)
         self.optimizers = make_optimizers(self.gaussians, cfg, self.extent)
         densify = cfg.densify
         if cfg.mode != "3dgs":  # growth goes on while the medium settles (DensifyConfig.medium_refine_factor)
@@ -111,13 +116,11 @@ class Trainer:
         self.compiled = should_compile(cfg.compile_losses, cfg.iterations)  # the loss graphs (pipeline.train.jit)
         self._photometric = maybe_compiled(photometric_losses, self.compiled)
         self.medium: MediumTerm | None = None
-        self.max_sh_degree = cfg.sh_degree
         if cfg.mode != "3dgs":
             # J is rendered premultiplied over black; uncovered pixels see the water's veiling light instead.
             self.background = torch.zeros(3, device=self.device)
             self.medium = MediumTerm(cfg.mode, cfg.medium, scene, self.views, self.targets, cfg.iterations,
                                      self.device, compiled=self.compiled)
-            self.max_sh_degree = min(cfg.sh_degree, cfg.medium.max_sh_degree)
             # Opacity resets only while J alone is fitted, with time to recover before the medium starts: once
             # the water is on, an uncovered pixel shows the veil, and a reset scene is not brought back.
             self.densifier.stop_resets_at(self.medium.start - RESET_RECOVERY_REFINES * cfg.densify.refine_every)

@@ -40,6 +40,33 @@ def test_medium_switches_on_and_learns(small_medium_scene, mode):
     assert pred.shape == (72, 96, 3) and 0 <= float(pred.min()) and float(pred.max()) <= 1
 
 
+def test_medium_modes_allocate_only_the_sh_bands_they_render(small_medium_scene):
+    """A medium mode renders SH up to MediumConfig.max_sh_degree (1) whatever cfg.sh_degree says: only those bands
+    are allocated, and the run is bit for bit the one that carried the higher bands as zeros (they get no
+    gradient, so Adam and densification leave them zero). Plain 3DGS keeps every band."""
+    from torch import nn
+
+    from pipeline.train.setup import make_optimizers
+
+    scene, images = small_medium_scene
+    cfg = replace(_cfg("homogeneous", 40), sh_degree=3)
+    assert Trainer(scene, images, replace(cfg, mode="3dgs")).gaussians["shN"].shape[1] == 15
+    lean = Trainer(scene, images, cfg)
+    assert lean.max_sh_degree == 1 and lean.gaussians["shN"].shape[1] == 3
+    lean.run()
+    padded = Trainer(scene, images, cfg)  # seeds the global generator again (densification draws from it)
+    n = padded.gaussians["shN"].shape[0]
+    padded.gaussians["shN"] = nn.Parameter(torch.cat([padded.gaussians["shN"].detach(), torch.zeros(n, 12, 3)], 1))
+    padded.optimizers = make_optimizers(padded.gaussians, cfg, padded.extent)
+    padded.run()
+    assert lean.iteration == padded.iteration == 40 and lean.gaussians["means"].shape[0] > n  # it densified
+    for k in lean.gaussians:
+        if k != "shN":
+            assert torch.equal(lean.gaussians[k], padded.gaussians[k]), k
+    assert torch.equal(lean.gaussians["shN"], padded.gaussians["shN"][:, :3])
+    assert not padded.gaussians["shN"][:, 3:].any()
+
+
 @pytest.mark.slow
 def test_dualphys_resume_matches_straight_run(small_medium_scene, tmp_path):
     scene, images = small_medium_scene
