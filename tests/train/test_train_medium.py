@@ -42,8 +42,10 @@ def test_medium_switches_on_and_learns(small_medium_scene, mode):
 
 def test_medium_modes_allocate_only_the_sh_bands_they_render(small_medium_scene):
     """A medium mode renders SH up to MediumConfig.max_sh_degree (1) whatever cfg.sh_degree says: only those bands
-    are allocated, and the run is bit for bit the one that carried the higher bands as zeros (they get no
-    gradient, so Adam and densification leave them zero). Plain 3DGS keeps every band."""
+    are allocated, and the run is the one that carried the higher bands as zeros (they get no gradient, so Adam
+    and densification leave them exactly zero), to float rounding: fused Adam's vector loop and its scalar tail
+    round differently, and the tensor's length decides which elements fall in the tail (one element of shN, 1e-10,
+    at the last of these 40 steps). Plain 3DGS keeps every band."""
     from torch import nn
 
     from pipeline.train.setup import make_optimizers
@@ -61,9 +63,8 @@ def test_medium_modes_allocate_only_the_sh_bands_they_render(small_medium_scene)
     padded.run()
     assert lean.iteration == padded.iteration == 40 and lean.gaussians["means"].shape[0] > n  # it densified
     for k in lean.gaussians:
-        if k != "shN":
-            assert torch.equal(lean.gaussians[k], padded.gaussians[k]), k
-    assert torch.equal(lean.gaussians["shN"], padded.gaussians["shN"][:, :3])
+        want = padded.gaussians[k][:, :3] if k == "shN" else padded.gaussians[k]
+        torch.testing.assert_close(lean.gaussians[k], want, rtol=1e-6, atol=1e-9, msg=k)
     assert not padded.gaussians["shN"][:, 3:].any()
 
 
