@@ -43,9 +43,9 @@ def test_medium_switches_on_and_learns(small_medium_scene, mode):
 def test_medium_modes_allocate_only_the_sh_bands_they_render(small_medium_scene):
     """A medium mode renders SH up to MediumConfig.max_sh_degree (1) whatever cfg.sh_degree says: only those bands
     are allocated, and the run is the one that carried the higher bands as zeros (they get no gradient, so Adam
-    and densification leave them exactly zero), to float rounding: fused Adam's vector loop and its scalar tail
-    round differently, and the tensor's length decides which elements fall in the tail (one element of shN, 1e-10,
-    at the last of these 40 steps). Plain 3DGS keeps every band."""
+    and densification leave them exactly zero), to float rounding: fused Adam's rounding of an element depends on
+    the tensor's length (one element of shN, 1e-10, at the last of these 40 steps; the for-loop Adam gives the
+    same bits). Plain 3DGS keeps every band."""
     from torch import nn
 
     from pipeline.train.setup import make_optimizers
