@@ -10,6 +10,7 @@ import torch
 
 from pipeline.config import MediumConfig, from_dict
 from pipeline.medium.model import Medium
+from pipeline.train.setup import rendered_sh_degree
 
 
 def medium_from_state(mode: str, sd: dict[str, Any]) -> Medium:
@@ -36,9 +37,8 @@ def model_from_state(state: dict[str, Any]) -> TrainedModel:
     """The renderable model in a training checkpoint ``state`` (``pipeline.train.checkpoint.load_checkpoint``)."""
     cfg = state["config"]
     medium = medium_from_state(state["mode"], state["medium"]) if state.get("medium") else None
-    sh = cfg.get("sh_degree", 3)
-    if medium is not None:
-        sh = min(sh, cfg["medium"].get("max_sh_degree", 1))
+    sh = rendered_sh_degree(cfg.get("sh_degree", 3), cfg["medium"].get("max_sh_degree", 1) if medium is not None
+                            else None)
     # Medium modes render J premultiplied over black (the water fills what the Gaussians leave uncovered).
     background = (0.0, 0.0, 0.0) if medium is not None else tuple(cfg.get("background", (0.0, 0.0, 0.0)))
     return TrainedModel(state["mode"], dict(state["gaussians"]), medium, sh, background,  # type: ignore[arg-type]

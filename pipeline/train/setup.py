@@ -109,6 +109,12 @@ def means_lr(cfg: TrainConfig, extent: float, iteration: int) -> float:
     return extent * math.exp((1 - t) * math.log(cfg.lr_means) + t * math.log(cfg.lr_means_final))
 
 
+def rendered_sh_degree(sh_degree: int, medium_max: int | None) -> int:
+    """The highest SH degree a model renders: ``sh_degree``, capped in medium modes at the medium's limit
+    (``MediumConfig.max_sh_degree``: low-order SH keeps J view-consistent); ``medium_max`` None = plain 3DGS."""
+    return sh_degree if medium_max is None else min(sh_degree, medium_max)
+
+
 def active_sh_degree(cfg: TrainConfig, iteration: int) -> int:
     """SH warm-up: degree 0 for the first interval, +1 per interval, capped at ``cfg.sh_degree``.
     (``iteration`` is 1-based, so iterations 1..interval-1 use degree 0, as graphdeco's loop.)"""

@@ -43,6 +43,7 @@ from pipeline.train.setup import (
     make_optimizers,
     means_lr,
     prepare_images,
+    rendered_sh_degree,
     scene_extent,
 )
 
@@ -103,7 +104,7 @@ class Trainer:
         # The SH bands the model renders: medium modes keep J view-consistent with low-order SH
         # (MediumConfig.max_sh_degree). Only those are allocated: bands never rendered get no gradient, and Adam,
         # densification and checkpoints would carry them as zeros (36 of 59 floats per Gaussian at degree 3).
-        self.max_sh_degree = cfg.sh_degree if cfg.mode == "3dgs" else min(cfg.sh_degree, cfg.medium.max_sh_degree)
+        self.max_sh_degree = rendered_sh_degree(cfg.sh_degree, None if cfg.mode == "3dgs" else cfg.medium.max_sh_degree)
         self.gaussians = initial_gaussians(scene, replace(cfg, sh_degree=self.max_sh_degree), self.extent,
                                            self.device)
         self.optimizers = make_optimizers(self.gaussians, cfg, self.extent)
