@@ -164,16 +164,18 @@ def _linear_to_srgb(x):  # pragma: no cover - numba
 
 @njit(parallel=True, cache=True)
 def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max, prior, has_prior, lam2,
-            sigma, var2, tau):  # pragma: no cover - numba
+            sigma, noise2, cov, dcov, tau):  # pragma: no cover - numba
     """The physics per pixel (twin: ``pipeline.restore.dewater.dewater_reference``).
 
     img [n, W, 3] any dtype (× ``scale`` → [0, 1]); r [n, W] float32 range; surface [n, W] bool; k_A, k_B
     [n, W, 3] or [1, 1, 3] float32; B_inf [3]; max_gain > 1; prior [n, W, 3] float32 (the model's J, in the
-    physics' space) read when ``has_prior``, with weights lam2 [3] (each ≥ (0.5 / max_gain)²); sigma [3, 3] the
-    water's uncertainty (rows: log k_A, log k_B, logit B∞; columns: channels), var2 [2, 3] the photo's noise
-    variance and what the model lacks (its detail variance, read with the prior), tau the expected error at
-    confidence 1/2 (``pipeline.restore.dewater.expected_error``). Writes J [n, W, 3] (uint8 or uint16)
-    quantised to 0..out_max; returns (confidence [n, W] float32, clipped count)."""
+    physics' space) read when ``has_prior``, with weights lam2 [3] (each ≥ (0.5 / max_gain)²) and cov [3, 3]
+    the prior's covariance across channels (the photo's effective noise is lam2·diag(cov)): J = P + G·e,
+    e = I − B − A·P, G = cov·A·(A·cov·A + N)⁻¹, each row of G scaled to |G|₁ ≤ max_gain; sigma [3, 3] the water's
+    uncertainty (rows: log k_A, log k_B, logit B∞; columns: channels), noise2 [3] the photo's noise variance,
+    dcov [3, 3] what the model lacks (a covariance of J), tau the expected error at confidence 1/2
+    (``pipeline.restore.dewater.expected_error``). Writes J [n, W, 3] (uint8 or uint16) quantised to
+    0..out_max; returns (confidence [n, W] float32, clipped count)."""
     n, W, _ = img.shape
     conf = np.zeros((n, W), np.float32)
     clipped = np.zeros(n, np.int64)
@@ -182,6 +184,9 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
     full_A = 1 if k_A.shape[0] > 1 else 0  # index multipliers: 0 reads the [1, 1, 3] constant
     full_B = 1 if k_B.shape[0] > 1 else 0
     for i in prange(n):
+        t = np.empty((8, 3))  # per channel: A, B, x, oA, oB, e^(-oB), e = x - B - A·P, the value
+        G = np.empty((3, 3))
+        M = np.empty((3, 3))
         for j in range(W):
             if not surface[i, j]:
                 for c in range(3):
@@ -191,37 +196,53 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
             if not rr >= 0.0:  # also NaN
                 rr = 0.0
             ia, ja, ib, jb = i * full_A, j * full_A, i * full_B, j * full_B
-            err2 = 0.0
-            clip = False
             for c in range(3):
                 kA = min(max(np.float64(k_A[ia, ja, c]), 0.0), 1e30)
                 kB = min(max(np.float64(k_B[ib, jb, c]), 0.0), 1e30)
-                oA = min(kA * rr, 80.0)
-                oB = min(kB * rr, 80.0)
-                A = np.exp(-oA)
-                eB = np.exp(-oB)
-                B = B_inf[c] * -np.expm1(-oB)
+                t[3, c] = min(kA * rr, 80.0)
+                t[4, c] = min(kB * rr, 80.0)
+                t[0, c] = np.exp(-t[3, c])
+                t[5, c] = np.exp(-t[4, c])
+                t[1, c] = B_inf[c] * -np.expm1(-t[4, c])
                 x = scale * np.float64(img[i, j, c])
-                if linear:
-                    x = _srgb_to_linear(x)
+                t[2, c] = _srgb_to_linear(x) if linear else x
+            if has_prior:
+                for c in range(3):
+                    t[6, c] = t[2, c] - t[1, c] - t[0, c] * np.float64(prior[i, j, c])
+                    for k in range(3):
+                        M[c, k] = t[0, c] * cov[c, k] * t[0, k]
+                    M[c, c] += lam2[c] * cov[c, c]
+                _gain_matrix(M, cov, t, G, max_gain)
+                for c in range(3):
+                    t[7, c] = np.float64(prior[i, j, c]) + G[c, 0] * t[6, 0] + G[c, 1] * t[6, 1] + G[c, 2] * t[6, 2]
+            else:
+                for c in range(3):
+                    t[7, c] = (t[2, c] - t[1, c]) / max(t[0, c], a_min)
+            err2 = 0.0
+            clip = False
+            for c in range(3):
+                A, oA, oB, v = t[0, c], t[3, c], t[4, c], t[7, c]
                 Ae = max(A, a_min)
                 if has_prior:
-                    v = (A * (x - B) + lam2[c] * np.float64(prior[i, j, c])) / (A * A + lam2[c])
-                    gain = A / (A * A + lam2[c])
-                    share = lam2[c] / (A * A + lam2[c])  # the model's share of v
-                    model2 = share * share * var2[1, c]
+                    # the photo's noise through the gains, and what the model lacks through I − G·A
+                    noise = G[c, 0] ** 2 * noise2[0] + G[c, 1] ** 2 * noise2[1] + G[c, 2] ** 2 * noise2[2]
+                    model2 = 0.0
+                    for a in range(3):
+                        ka = (1.0 if a == c else 0.0) - G[c, a] * t[0, a]
+                        for b in range(3):
+                            model2 += ka * dcov[a, b] * ((1.0 if b == c else 0.0) - G[c, b] * t[0, b])
+                    model2 = max(model2, 0.0)
                 else:
-                    v = (x - B) / Ae
-                    gain = 1.0 / Ae
+                    noise = noise2[c] / (Ae * Ae)
                     model2 = 0.0
                 if v < 0.0 or v > 1.0:
                     clip = True
                     v = min(max(v, 0.0), 1.0)
                 # expected error of v (the twin: pipeline.restore.dewater.expected_error)
                 dA = v * oA * sigma[0, c]
-                dB = ((B_inf[c] * oB * eB * sigma[1, c]) ** 2
+                dB = ((B_inf[c] * oB * t[5, c] * sigma[1, c]) ** 2
                       + (B_inf[c] * (1.0 - B_inf[c]) * -np.expm1(-oB) * sigma[2, c]) ** 2)
-                e = np.sqrt(dA * dA + dB / (Ae * Ae) + var2[0, c] * gain * gain + model2)
+                e = np.sqrt(dA * dA + dB / (Ae * Ae) + noise + model2)
                 if linear:
                     s0 = _linear_to_srgb(v)
                     e = max(_linear_to_srgb(min(v + e, 1.0)) - s0, s0 - _linear_to_srgb(max(v - e, 0.0)))
@@ -234,6 +255,28 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
             if clip:
                 clipped[i] += 1
     return conf, clipped.sum()
+
+
+@njit(inline="always")
+def _gain_matrix(M, cov, t, G, max_gain):  # pragma: no cover - numba
+    """G = cov·diag(A)·M⁻¹ (M symmetric positive definite, inverted by cofactors; A = t[0]), each row scaled so
+    that Σ_k |G_ck| ≤ max_gain. Written into G [3, 3]."""
+    a, b, c, d, e, f = M[0, 0], M[0, 1], M[0, 2], M[1, 1], M[1, 2], M[2, 2]
+    i00, i01, i02 = d * f - e * e, c * e - b * f, b * e - c * d
+    i11, i12, i22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * i00 + b * i01 + c * i02
+    inv = 1.0 / det
+    for r in range(3):
+        w0, w1, w2 = cov[r, 0] * t[0, 0], cov[r, 1] * t[0, 1], cov[r, 2] * t[0, 2]
+        G[r, 0] = (w0 * i00 + w1 * i01 + w2 * i02) * inv
+        G[r, 1] = (w0 * i01 + w1 * i11 + w2 * i12) * inv
+        G[r, 2] = (w0 * i02 + w1 * i12 + w2 * i22) * inv
+        total = abs(G[r, 0]) + abs(G[r, 1]) + abs(G[r, 2])
+        if total > max_gain:
+            k = max_gain / total
+            G[r, 0] *= k
+            G[r, 1] *= k
+            G[r, 2] *= k
 
 
 @njit(parallel=True, cache=True)

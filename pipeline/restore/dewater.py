@@ -7,6 +7,12 @@ Rules (docs/DECISIONS.md, "Restoring the originals"):
       J = (A·(I − B) + λ²·J_m) / (A² + λ²),
   λ² = σ_n² / σ_d², the photo's noise against what the model lacks, measured per photo and channel
   (:func:`prior_weights`), never below (1/(2·max_gain))².
+  With what the model lacks measured as a covariance across channels, Σ_d (``detail_cov``,
+  :func:`detail_covariance`), the three channels are solved together, the posterior mean under that prior:
+      J = J_m + G·(I − B − A·J_m),   G = Σ_d·A·(A·Σ_d·A + N)⁻¹,   N = diag(λ²·diag Σ_d),
+  which is the per-channel rule above when Σ_d is diagonal. Where one channel's photo signal is weak (red in
+  turbid water) its missing detail is taken from the channels that see it, as far as they are measured to vary
+  together; each row of G is scaled to Σ_k |G_ck| ≤ ``max_gain``.
   Where the water lets light through (A ≫ λ) this is (I − B)/A, the photo's own detail; where it does not (far
   range, red in turbid water) the photo's signal is below its noise and J leans on the model, which saw that
   surface from nearer views. The gain dJ/dI = A / (A² + λ²) is at most 1/(2λ) ≤ ``max_gain``: no channel is
@@ -62,7 +68,7 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
             B_inf: np.ndarray, *, max_gain: float = 8.0, space: str = "srgb", out_max: int = 255,
             scale: float | None = None, prior: np.ndarray | None = None, lam2: np.ndarray | None = None,
             sigma: np.ndarray | None = None, noise2: np.ndarray | None = None, detail2: np.ndarray | None = None,
-            ) -> tuple[np.ndarray, np.ndarray, int]:
+            detail_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Restore a block of pixels.
 
     Args:
@@ -77,6 +83,8 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
         sigma: [3, 3] the water's uncertainty (rows log k_A, log k_B, logit B∞; columns channels); default
         :data:`UNMEASURED_SIGMA`. noise2: [3] the photo's noise variance (physics space); detail2: [3] what the
         model lacks, as a variance of J (:meth:`pipeline.restore.frame.FrameRestorer.calibrate`); defaults 0.
+        detail_cov: [3, 3] what the model lacks as a covariance of J across channels (:func:`detail_covariance`;
+        it replaces ``detail2``): the channels are solved together. None: each channel alone.
     Returns (J [n, W, 3] uint8 or uint16, confidence [n, W] float32 in [0, 1], clipped pixel count)."""
     from pipeline.restore._kernels import dewater as kernel
 
@@ -89,9 +97,34 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
                            np.asarray(B_inf, np.float64).reshape(3), float(max_gain), space == "linear", J,
                            int(out_max), np.ascontiguousarray(prior if prior is not None else np.zeros((1, 1, 3)),
                                                               np.float32), prior is not None,
-                           _lam2(lam2, max_gain), _sigma(sigma), np.stack([_variance(noise2), _variance(detail2)]),
+                           _lam2(lam2, max_gain), _sigma(sigma), _variance(noise2), *_covariances(detail2, detail_cov),
                            float(CONFIDENCE_ERROR))
     return J, conf, int(clipped)
+
+
+def _covariances(detail2: np.ndarray | None, detail_cov: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(the prior's covariance shape the estimate uses, what the model lacks for the expected error), [3, 3]
+    float64 each: (Σ_d, Σ_d) with ``detail_cov``; else (identity, diag(detail2)), the channels apart."""
+    if detail_cov is None:
+        return np.eye(3), np.diag(_variance(detail2))
+    c = _psd(detail_cov)
+    return c, c
+
+
+def _psd(c: np.ndarray, floor: float = 1e-12) -> np.ndarray:
+    """The symmetric part of ``c`` [3, 3] with its eigenvalues floored at ``floor``: a valid covariance."""
+    c = np.nan_to_num(np.asarray(c, np.float64).reshape(3, 3))
+    w, U = np.linalg.eigh(0.5 * (c + c.T))
+    return np.ascontiguousarray((U * np.maximum(w, floor)) @ U.T)
+
+
+def detail_covariance(residual_lag: np.ndarray, a_cross: np.ndarray) -> np.ndarray:
+    """What the model lacks as a covariance of J across channels, Σ_d [3, 3], from a photo's residual
+    e = A·d + n (:func:`prior_weights`): the lag-1 cross products E[e_c,x · e_k,x+1] (``residual_lag`` [3, 3])
+    keep A_c·A_k·cov(d_c, d_k) and lose the white noise; over E[A_c·A_k] (``a_cross`` [3, 3]). Symmetrised and
+    made positive definite; its diagonal is :func:`noise_and_detail`'s σ_d²."""
+    lag = np.asarray(residual_lag, np.float64).reshape(3, 3)
+    return _psd(0.5 * (lag + lag.T) / np.maximum(np.asarray(a_cross, np.float64).reshape(3, 3), 1e-12))
 
 
 def _sigma(sigma: np.ndarray | None) -> np.ndarray:
@@ -108,22 +141,21 @@ def _variance(v: np.ndarray | None) -> np.ndarray:
 
 
 def expected_error(J: np.ndarray, r: np.ndarray, k_A: np.ndarray, k_B: np.ndarray, B_inf: np.ndarray,
-                   A_eff: np.ndarray, gain: np.ndarray, sigma: np.ndarray | None = None,
-                   noise2: np.ndarray | None = None, model_share: np.ndarray | float = 0.0,
-                   detail2: np.ndarray | None = None) -> np.ndarray:
+                   A_eff: np.ndarray, noise_var: np.ndarray | float = 0.0, model_var: np.ndarray | float = 0.0,
+                   sigma: np.ndarray | None = None) -> np.ndarray:
     """The expected error of a restored value J (physics space, [0, 1]) per channel, first order:
     e² = (J·k_A·r·σ_A)² + ((B∞·k_B·r·e^(−k_B r)·σ_B)² + (B∞(1 − B∞)(1 − e^(−k_B r))·σ_∞)²) / A_eff²
-         + σ_n²·gain² + (m·σ_d)²:
-    an error δ in log k_A scales J by e^(k_A·r·δ); one in log k_B or logit B∞ moves B, and J by δB/A_eff; the
-    photo's noise σ_n comes through the gain dJ/dI; the model's share m = λ²/(A² + λ²) of J brings what the
-    model lacks, σ_d. J, r[..., None], k_A, k_B, A_eff, gain, model_share broadcast to [..., 3]. Float64 numpy;
-    the reference for the kernel's loop."""
+         + noise_var + model_var:
+    an error δ in log k_A scales J by e^(k_A·r·δ); one in log k_B or logit B∞ moves B, and J by δB/A_eff;
+    ``noise_var`` is the photo's noise through the gains (σ_n²/A_eff² without a prior; Σ_k G_ck²·σ_n,k² with
+    one), ``model_var`` what the model lacks through I − G·A (:func:`dewater_reference`). J, r[..., None], k_A,
+    k_B, A_eff and the variances broadcast to [..., 3]. Float64 numpy; the reference for the kernel's loop."""
     s = _sigma(sigma)
     oA = np.minimum(np.asarray(k_A, np.float64) * r, 80.0)
     oB = np.minimum(np.asarray(k_B, np.float64) * r, 80.0)
     dA = J * oA * s[0]
     dB = (B_inf * oB * np.exp(-oB) * s[1]) ** 2 + (B_inf * (1 - B_inf) * -np.expm1(-oB) * s[2]) ** 2
-    return np.sqrt(dA**2 + dB / A_eff**2 + _variance(noise2) * gain**2 + (model_share**2) * _variance(detail2))
+    return np.sqrt(dA**2 + dB / A_eff**2 + noise_var + model_var)
 
 
 def confidence_from_error(J: np.ndarray, e: np.ndarray, linear: bool) -> np.ndarray:
@@ -171,9 +203,10 @@ def noise_and_detail(residual_sq: np.ndarray, residual_lag: np.ndarray, a_sq: np
 def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,
                       max_gain: float = 8.0, space: str = "srgb", prior: np.ndarray | None = None,
                       lam2: np.ndarray | None = None, noise2: np.ndarray | None = None,
-                      detail2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
-    """Slow twin of :func:`dewater` (numpy, float64, unquantised). img float [n, W, 3] in [0, 1].
-    Returns (J float64 [n, W, 3] in [0, 1], confidence [n, W], clipped pixel count)."""
+                      detail2: np.ndarray | None = None, detail_cov: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Slow twin of :func:`dewater` (numpy, float64, unquantised; per-pixel matrices by ``np.linalg``). img
+    float [n, W, 3] in [0, 1]. Returns (J float64 [n, W, 3] in [0, 1], confidence [n, W], clipped count)."""
     _check(max_gain, space)
     x = np.asarray(img, np.float64)
     x = srgb_to_linear(x) if space == "linear" else x
@@ -181,16 +214,24 @@ def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, mediu
     A = np.exp(-np.clip(np.nan_to_num(medium.k_A) * rr, 0, 80))
     B = medium.B_inf * -np.expm1(-np.clip(np.nan_to_num(medium.k_B) * rr, 0, 80))
     Ae = np.maximum(A, 1.0 / max_gain)
+    n2 = _variance(noise2)
     if prior is None:
         raw = (x - B) / Ae
-        gain, share = 1.0 / Ae, 0.0
+        noise_var, model_var = n2 / Ae**2, 0.0
     else:
-        l2 = _lam2(lam2, max_gain)
-        raw = (A * (x - B) + l2 * np.asarray(prior, np.float64)) / (A * A + l2)
-        gain, share = A / (A * A + l2), l2 / (A * A + l2)
+        P = np.asarray(prior, np.float64)
+        cov, dcov = _covariances(detail2, detail_cov)
+        DA = A[..., :, None] * np.eye(3)  # diag(A) per pixel
+        M = DA @ cov @ DA + np.diag(_lam2(lam2, max_gain) * np.diag(cov))
+        G = cov @ DA @ np.linalg.inv(M)
+        G *= np.minimum(1.0, max_gain / np.abs(G).sum(-1))[..., None]  # each row's gain within the cap
+        raw = P + (G @ (x - B - A * P)[..., None])[..., 0]
+        K = np.eye(3) - G @ DA
+        noise_var = (G**2) @ n2
+        model_var = np.maximum(np.einsum("...ca,ab,...cb->...c", K, dcov, K), 0.0)
     J = np.clip(raw, 0, 1)
     kA, kB = (np.clip(np.nan_to_num(k, nan=0.0), 0, 1e30) for k in (medium.k_A, medium.k_B))
-    e = expected_error(J, rr, kA, kB, medium.B_inf, Ae, gain, medium.sigma, noise2, share, detail2)
+    e = expected_error(J, rr, kA, kB, medium.B_inf, Ae, noise_var, model_var, medium.sigma)
     conf = confidence_from_error(J, e, space == "linear")
     J = linear_to_srgb(J) if space == "linear" else J
     surface = np.asarray(surface, bool)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from pipeline.restore.dewater import dewater, noise_and_detail, prior_weights
+from pipeline.restore.dewater import detail_covariance, dewater, noise_and_detail, prior_weights
 from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.guided import (
     DEFAULT_EPS,
@@ -118,6 +118,8 @@ class FrameRestorer:
         self.lam2: np.ndarray | None = None  # the prior's weight per channel (calibrate); None: its floor
         self.noise2: np.ndarray | None = None  # the photo's noise variance per channel (calibrate); None: 0
         self.detail2: np.ndarray | None = None  # what the model lacks, as a variance of J (calibrate); None: 0
+        # the same across channels, a covariance [3, 3] (calibrate): the channels are restored together
+        self.detail_cov: np.ndarray | None = None
         logger.debug("restore %dx%d: lens grid step %d (%.4f px), filter r=%d s=%d halo=%d", lens.width,
                      lens.height, self.grid.step, self.grid.error, self.radius, self.s, self.halo)
 
@@ -141,7 +143,8 @@ class FrameRestorer:
         :attr:`lam2`. No prior: nothing to weigh, None."""
         if self.jmap is None:
             return None
-        sums, n_sq, n_lag = np.zeros((3, 3)), 0, 0
+        sq, lag, aa = np.zeros(3), np.zeros((3, 3)), np.zeros((3, 3))  # E[e²], E[e_c,x·e_k,x+1], E[A_c·A_k]
+        n_sq, n_lag = 0, 0
         m = self.view.medium
         for e0, y0, y1, e1 in self.calibration_bands():
             rows = rows_of(e0, e1)
@@ -154,15 +157,17 @@ class FrameRestorer:
             B = m.B_inf * -np.expm1(-np.clip(np.asarray(k_B, np.float64) * r, 0, 80))
             e = x - (prior * A + B)
             both = surface[:, :-1] & surface[:, 1:]
-            sums[0] += (e[surface] ** 2).sum(0)
-            sums[1] += (e[:, :-1][both] * e[:, 1:][both]).sum(0)
-            sums[2] += (A[surface] ** 2).sum(0)
+            sq += (e[surface] ** 2).sum(0)
+            lag += e[:, :-1][both].T @ e[:, 1:][both]
+            aa += A[surface].T @ A[surface]
             n_sq, n_lag = n_sq + int(surface.sum()), n_lag + int(both.sum())
         if n_lag < 100:
             return None
-        measured = (sums[0] / n_sq, sums[1] / n_lag, sums[2] / n_sq)
+        lag, aa = lag / n_lag, aa / n_sq
+        measured = (sq / n_sq, np.diag(lag).copy(), np.diag(aa).copy())
         self.lam2 = prior_weights(*measured, self.opt.max_gain)
         self.noise2, self.detail2 = noise_and_detail(*measured)  # for the confidence's expected error
+        self.detail_cov = detail_covariance(lag, aa)
         return self.lam2
 
     def _geometry(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
@@ -202,7 +207,8 @@ class FrameRestorer:
         m = self.view.medium
         J, conf, clipped = dewater(photo, r, surface, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
                                    space=self.opt.space, out_max=out_max, scale=scale, prior=prior, lam2=self.lam2,
-                                   sigma=m.sigma, noise2=self.noise2, detail2=self.detail2)
+                                   sigma=m.sigma, noise2=self.noise2, detail2=self.detail2,
+                                   detail_cov=self.detail_cov)
         w = near
         if w.any():
             x = photo.astype(np.float32) * np.float32(scale)

@@ -44,6 +44,35 @@ def test_with_the_models_prior_the_gain_never_exceeds_the_cap_and_far_pixels_lea
     assert np.allclose(J0[0, 1] / 65535, near, atol=2e-3)  # near: the photo's own (I − B)/A
 
 
+def test_channels_restored_together_keep_every_gain_under_the_cap():
+    """With a covariance across channels each output channel also moves with the other channels' photo values;
+    the gains of a row together, Σ_k |dJ_c/dI_k|, stay ≤ max_gain at every range. A diagonal covariance is the
+    per-channel rule exactly."""
+    W = 200
+    r = np.tile(np.linspace(0, 60, W, dtype=np.float32), (2, 1))
+    surf = np.ones((2, W), bool)
+    kA, kB, binf = np.array([0.5, 0.2, 0.1]), np.array([0.3, 0.2, 0.1]), np.array([0.05, 0.2, 0.3])
+    prior = np.full((2, W, 3), 0.4, np.float32)
+    cov = np.array([[9.0, 2.5, 2.0], [2.5, 1.0, 0.9], [2.0, 0.9, 1.0]]) * 1e-3  # red lacks the most, ρ ≈ 0.8
+    base = np.full((2, W, 3), 0.30, np.float32)
+    for g in (2.0, 8.0, 30.0):
+        J0, _, _ = dewater(base, r, surf, kA, kB, binf, max_gain=g, out_max=65535, prior=prior, detail_cov=cov)
+        gains = np.zeros((W, 3, 3))
+        for k in range(3):
+            up = base.copy()
+            up[..., k] += 0.01
+            J1, _, _ = dewater(up, r, surf, kA, kB, binf, max_gain=g, out_max=65535, prior=prior, detail_cov=cov)
+            gains[:, :, k] = (J1[0].astype(np.float64) - J0[0]) / 65535 / 0.01
+        total = np.abs(gains).sum(-1)
+        assert total.max() <= g * (1 + 2e-3) and total.max() > 0.9 * g, (g, total.max())
+        assert np.abs(gains[:, 0, 1:]).max() > 0.1  # red does move with green and blue
+    diag = np.diag(np.diag(cov))
+    for lam2 in (None, np.array([0.01, 0.05, 0.2])):
+        a = dewater(base, r, surf, kA, kB, binf, out_max=65535, prior=prior, lam2=lam2, detail_cov=diag)
+        b = dewater(base, r, surf, kA, kB, binf, out_max=65535, prior=prior, lam2=lam2, detail2=np.diag(cov))
+        assert np.abs(a[0].astype(int) - b[0]).max() <= 1 and np.abs(a[1] - b[1]).max() < 1e-6
+
+
 def test_confidence_is_the_expected_error_of_the_water_and_the_noise():
     """c = τ²/(τ² + mean e²): 1 for a known water and a noiseless photo; lower everywhere as the water's σ or
     the photo's noise grows; 1/2 where the expected error is τ (one channel's β_D known to a log-σ s: e = J·k·r·s)."""

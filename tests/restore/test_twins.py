@@ -53,3 +53,14 @@ def test_dewater_matches_reference_both_spaces_and_map_coefficients():
             assert np.abs(J / 65535 - Jr).max() < 2e-5  # quantisation 7.6e-6 + float32 inputs
             assert np.abs(c - cr).max() < 1e-5 and n == nr
             assert 0 < c[surf].min() and c[surf].max() < 1 and c.std() > 0.05  # not a constant map
+            if prior is None:
+                continue
+            # the channels together: a correlated covariance of what the model lacks, and a max_gain low enough
+            # that some rows of the gain matrix are scaled down to the cap
+            cov = np.array([[4e-3, 3e-3, 2e-3], [3e-3, 4e-3, 3.5e-3], [2e-3, 3.5e-3, 5e-3]])
+            for g in (8.0, 2.5):
+                J, c, n = dewater(img, r, surf, m.k_A, m.k_B, m.B_inf, max_gain=g, space=space, out_max=65535,
+                                  prior=prior, lam2=lam2, sigma=sigma, noise2=noise2, detail_cov=cov)
+                Jr, cr, nr = dewater_reference(img, r, surf, m, max_gain=g, space=space, prior=prior, lam2=lam2,
+                                               noise2=noise2, detail_cov=cov)
+                assert np.abs(J / 65535 - Jr).max() < 2e-5 and np.abs(c - cr).max() < 1e-5 and n == nr
