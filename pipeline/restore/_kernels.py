@@ -171,7 +171,7 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
     [n, W, 3] or [1, 1, 3] float32; B_inf [3]; max_gain > 1; prior [n, W, 3] float32 (the model's J, in the
     physics' space) read when ``has_prior``, with weights lam2 [3] (each ≥ (0.5 / max_gain)²) and cov [3, 3]
     the prior's covariance across channels (the photo's effective noise is lam2·diag(cov)): J = P + G·e,
-    e = I − B − A·P, G = cov·A·(A·cov·A + N)⁻¹, each row of G scaled to |G|₁ ≤ max_gain; sigma [3, 3] the water's
+    e = I − B − A·P, G from :func:`_gain_matrix`; sigma [3, 3] the water's
     uncertainty (rows: log k_A, log k_B, logit B∞; columns: channels), noise2 [3] the photo's noise variance,
     dcov [3, 3] what the model lacks (a covariance of J), tau the expected error at confidence 1/2
     (``pipeline.restore.dewater.expected_error``). Writes J [n, W, 3] (uint8 or uint16) quantised to
@@ -212,7 +212,7 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
                     for k in range(3):
                         M[c, k] = t[0, c] * cov[c, k] * t[0, k]
                     M[c, c] += lam2[c] * cov[c, c]
-                _gain_matrix(M, cov, t, G, max_gain)
+                _gain_matrix(M, cov, t, lam2, G, max_gain)
                 for c in range(3):
                     t[7, c] = np.float64(prior[i, j, c]) + G[c, 0] * t[6, 0] + G[c, 1] * t[6, 1] + G[c, 2] * t[6, 2]
             else:
@@ -258,9 +258,11 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
 
 
 @njit(inline="always")
-def _gain_matrix(M, cov, t, G, max_gain):  # pragma: no cover - numba
-    """G = cov·diag(A)·M⁻¹ (M symmetric positive definite, inverted by cofactors; A = t[0]), each row scaled so
-    that Σ_k |G_ck| ≤ max_gain. Written into G [3, 3]."""
+def _gain_matrix(M, cov, t, lam2, G, max_gain):  # pragma: no cover - numba
+    """The gains of J = P + G·e (twin: ``pipeline.restore.dewater.gain_matrix``): the joint posterior's
+    cov·diag(A)·M⁻¹ (M symmetric positive definite, inverted by cofactors; A = t[0]), each row scaled so that
+    Σ_k |G_ck| ≤ max_gain, then taking only the model's share m_c = λ_c²/(A_c² + λ_c²) of channel c: the photo's
+    share keeps the per-channel gain A_c/(A_c² + λ_c²). Written into G [3, 3]."""
     a, b, c, d, e, f = M[0, 0], M[0, 1], M[0, 2], M[1, 1], M[1, 2], M[2, 2]
     i00, i01, i02 = d * f - e * e, c * e - b * f, b * e - c * d
     i11, i12, i22 = a * f - c * c, b * c - a * e, a * d - b * b
@@ -272,11 +274,13 @@ def _gain_matrix(M, cov, t, G, max_gain):  # pragma: no cover - numba
         G[r, 1] = (w0 * i01 + w1 * i11 + w2 * i12) * inv
         G[r, 2] = (w0 * i02 + w1 * i12 + w2 * i22) * inv
         total = abs(G[r, 0]) + abs(G[r, 1]) + abs(G[r, 2])
-        if total > max_gain:
-            k = max_gain / total
-            G[r, 0] *= k
-            G[r, 1] *= k
-            G[r, 2] *= k
+        k = max_gain / total if total > max_gain else 1.0
+        A, l2 = t[0, r], lam2[r]
+        m = l2 / (A * A + l2)
+        G[r, 0] *= k * m
+        G[r, 1] *= k * m
+        G[r, 2] *= k * m
+        G[r, r] += (1.0 - m) * A / (A * A + l2)
 
 
 @njit(parallel=True, cache=True)

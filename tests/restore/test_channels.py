@@ -1,6 +1,6 @@
 """The three channels restored together (``detail_cov``): where one channel's photo signal is weak (red through
-turbid water) it takes the detail the model lacks from the channels that see it, as far as the photo's own
-residual says the channels vary together; where they vary apart it loses (almost) nothing."""
+turbid water) the model's share of it takes the detail the model lacks from the channels that see it, as far as
+the photo's own residual says the channels vary together; where they vary apart it loses (almost) nothing."""
 
 import dataclasses
 
@@ -46,7 +46,7 @@ def _restore(fr: SynthFrame, together: bool) -> np.ndarray:
 def test_a_weak_channel_takes_the_detail_the_others_see(kind):
     fr = (SynthFrame if kind == "together" else _ChannelsApart)(640, 480, factor=8, k1=-0.1, z0=6.0)
     apart, joint = _restore(fr, False), _restore(fr, True)
-    if kind == "together":  # measured red 26.5 → 31.9 dB, green 27.1 → 29.8, blue 29.5 → 31.3
-        assert joint[0] > apart[0] + 3 and (joint > apart + 1).all(), (apart, joint)
-    else:  # measured -0.13 / -0.02 / -0.02 dB: the rock's outline is all they share
+    if kind == "together":  # measured red 26.5 → 30.8 dB, green 27.1 → 29.2, blue 29.5 → 30.7
+        assert joint[0] > apart[0] + 3 and (joint > apart + 0.8).all(), (apart, joint)
+    else:  # measured -0.10 / -0.03 / -0.02 dB: the rock's outline is all they share
         assert (joint > apart - 0.3).all(), (apart, joint)
