@@ -341,8 +341,8 @@ def reach_weight(ok: np.ndarray, reach_px: float) -> np.ndarray:
 def extension_weight(near: np.ndarray, r: np.ndarray, k_A: np.ndarray, min_transmission: float) -> np.ndarray:
     """The weight (``near``'s shape, float32) of the photo-only restoration off the surface: the reach weight
     ``near`` times a fade on the mean transmission A = exp(−k_A·r) over the channels at the carried-on range
-    ``r``: 1 from 2 x ``min_transmission`` up, 0 at ``min_transmission`` and below (there the water hides the bottom: open
-    water, or seabed too far to tell from it)."""
+    ``r``: 1 from 2 x ``min_transmission`` up, 0 at ``min_transmission`` and below (there the water hides the
+    bottom: open water, or seabed too far to tell from it)."""
     k = np.nan_to_num(np.asarray(k_A, np.float32), nan=0.0)  # [3] or per pixel [..., 3]
     a = np.exp(-np.clip(k * np.asarray(r, np.float32)[..., None], 0, 80)).mean(-1)
     fade = np.clip(a / min_transmission - 1.0, 0.0, 1.0)
