@@ -112,7 +112,14 @@ def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "a
 
 def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, max_gain: float, fmt: str) -> int:
     """The input photos of ``views`` de-watered into ``out/restored`` and ``out/confidence``; their count."""
-    from pipeline.restore.views import NOTHING_TO_RESTORE, job_water_sigma, lens_cameras, rendered_view, restore_photo
+    from pipeline.restore.views import (
+        NOTHING_TO_RESTORE,
+        job_water_sigma,
+        lens_cameras,
+        photo_view,
+        rendered_view,
+        restore_photo,
+    )
     from pipeline.train.model import model_from_state
 
     model = model_from_state(state)
@@ -123,7 +130,8 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
     sigma = job_water_sigma(job)
     for v in views:  # out/ gets the job's own folder names for them
         restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
-                      lenses[v.name], rendered_view(model, v, sigma=sigma), max_gain=max_gain, fmt=fmt,
+                      lenses[v.name], rendered_view(model, photo_view(v, lenses[v.name])[0], sigma=sigma),
+                      max_gain=max_gain, fmt=fmt,
                       space=model.colour_space)
     return len(views)
 

@@ -49,6 +49,33 @@ def lens_cameras(scene_dir: Path) -> dict[str, LensCamera]:
     return read_lenses(sparse)
 
 
+def photo_view(view: View, lens: LensCamera) -> tuple[View, int]:
+    """``view`` with its render camera padded by ``pad`` pixels on every side (same focal length and centre), just
+    enough that every pixel of the photo (``lens``) lands inside it: (the view, pad). The training camera is
+    SfM's undistorted crop, and a photo through a barrel lens reaches beyond it along its edges (a 1600x1200
+    photo, k1 −0.12: up to 6 render pixels at the corners); the model holds the seabed there (other views saw it),
+    so it is rendered, not extrapolated. No pad: the view itself."""
+    import dataclasses
+    import math
+
+    from pipeline.restore.lens import exact_rays
+    from pipeline.scene.records import Camera
+
+    W, H = lens.width, lens.height
+    edges = [exact_rays(lens, 0, 1), exact_rays(lens, H - 1, H), exact_rays(lens, 0, H, 0, 1),
+             exact_rays(lens, 0, H, W - 1, W)]
+    xn = np.concatenate([e[0].ravel() for e in edges])
+    yn = np.concatenate([e[1].ravel() for e in edges])
+    c = view.camera
+    u, v = c.fx * xn + c.cx, c.fy * yn + c.cy
+    over = max(0.0, -float(u.min()), float(u.max()) - c.width, -float(v.min()), float(v.max()) - c.height)
+    pad = math.ceil(over) + 1 if over > 0 else 0  # +1: bilinear sampling needs the next pixel centre too
+    if pad == 0:
+        return view, 0
+    cam = Camera(c.width + 2 * pad, c.height + 2 * pad, c.fx, c.fy, c.cx + pad, c.cy + pad)
+    return dataclasses.replace(view, camera=cam), pad
+
+
 def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: ViewOutputs | None = None,
                   sigma: np.ndarray | None = None) -> RenderedView:
     """The model's depth, alpha and water for ``view`` (training camera), from ``out`` when the caller rendered
