@@ -27,3 +27,26 @@ def test_opencv_model_and_pinhole_identity():
     u, v = render_position(xn, yn, Camera(320, 240, 300.0, 300.0, 160.0, 120.0))
     assert np.abs(u - (np.arange(320) + 0.5)).max() < 1e-4  # pixel-centre convention end to end
     assert np.abs(v - (np.arange(240) + 0.5)[:, None]).max() < 1e-4
+
+
+def test_photo_view_pads_the_render_camera_to_the_photos_edges():
+    """A barrel lens's photo reaches beyond the undistorted crop: the padded camera holds every photo pixel's ray,
+    with no more than one pixel to spare beyond the bilinear neighbour; a photo inside the crop pads nothing."""
+    from pipeline.restore.synthetic import SynthFrame
+    from pipeline.restore.views import photo_view
+    from pipeline.scene.records import View
+
+    fr = SynthFrame(640, 480, factor=8, k1=-0.1)
+    view = View("x.png", fr.render_camera, np.eye(3), np.zeros(3))
+    padded, pad = photo_view(view, fr.lens)
+    c = padded.camera
+    assert pad >= 2 and (c.width, c.height) == (80 + 2 * pad, 60 + 2 * pad) and c.fx == view.camera.fx
+    xn, yn = exact_rays(fr.lens, 0, 480)
+    u, v = c.fx * xn + c.cx, c.fy * yn + c.cy
+    assert u.min() >= 0 and v.min() >= 0 and u.max() <= c.width and v.max() <= c.height
+    inner = min(u.min(), v.min(), c.width - u.max(), c.height - v.max())
+    assert inner <= 2.0, inner  # the pad is the overshoot rounded up, plus one pixel
+    u0 = view.camera.fx * xn + view.camera.cx
+    assert u0.min() < 0  # without the pad the photo's edge lands outside the render
+    plain = LensCamera("PINHOLE", 80, 60, (fr.render_camera.fx, fr.render_camera.fy, 40.0, 30.0))
+    assert photo_view(view, plain) == (view, 0)
