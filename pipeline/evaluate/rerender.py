@@ -129,10 +129,10 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
     lenses = lens_cameras(layout.scene)
     sigma = job_water_sigma(job)
     for v in views:  # out/ gets the job's own folder names for them
+        padded, pad = photo_view(v, lenses[v.name])
         restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
-                      lenses[v.name], rendered_view(model, photo_view(v, lenses[v.name])[0], sigma=sigma),
-                      max_gain=max_gain, fmt=fmt,
-                      space=model.colour_space)
+                      lenses[v.name], rendered_view(model, padded, sigma=sigma, pad=pad), max_gain=max_gain,
+                      fmt=fmt, space=model.colour_space)
     return len(views)
 
 

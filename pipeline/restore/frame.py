@@ -103,7 +103,8 @@ class FrameRestorer:
     def __init__(self, lens: LensCamera, view: RenderedView, options: RestoreOptions = RestoreOptions()):
         self.lens, self.view, self.opt = lens, view, options
         self.grid = LensGrid(lens, tol=options.lens_tol)
-        self.radius = default_radius(lens, view.camera) if options.radius is None else int(options.radius)
+        self.radius = (default_radius(lens, view.camera, view.pad) if options.radius is None
+                       else int(options.radius))
         self.s = default_subsample(self.radius) if self.radius > 0 else 1
         self.halo = halo_rows(self.radius, self.s) if self.radius > 0 else 0
         self.band_rows = -(-options.band_rows // self.s) * self.s
@@ -111,7 +112,8 @@ class FrameRestorer:
         alpha = np.nan_to_num(np.asarray(view.alpha, np.float64), nan=0.0)
         ok = (alpha >= 0.5) & (depth > 0)
         z = fill_invalid(depth[..., None], ok)[..., 0]
-        near = reach_weight(ok, options.reach * max(ok.shape)) if options.unseen == "extend" else np.zeros_like(z)
+        near = (reach_weight(ok, options.reach * (max(ok.shape) - 2 * view.pad)) if options.unseen == "extend"
+                else np.zeros_like(z))
         self.maps = np.ascontiguousarray(np.stack([z, np.where(ok, alpha, 0.0), near], -1), np.float32)  # [h, w, 3]
         m = view.medium
         self.kmaps = None if m.constant else np.ascontiguousarray(np.concatenate(

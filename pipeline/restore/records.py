@@ -52,6 +52,9 @@ class RenderedView:
     alpha: np.ndarray
     medium: MediumMaps
     J: np.ndarray | None = None
+    # render pixels added on each side of the training camera so the whole photo lands inside
+    # (pipeline.restore.views.photo_view); the upsampling factor is the photo's width over the unpadded width
+    pad: int = 0
 
     def __post_init__(self) -> None:
         shape = (self.camera.height, self.camera.width)

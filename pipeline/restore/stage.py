@@ -64,7 +64,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
             J = displayed(out, model.colour_space).J
             renders[view.name] = J[pad:J.shape[0] - pad, pad:J.shape[1] - pad]
         stats = restore_photo(src, layout.restored, layout.confidence, lenses[view.name],
-                              rendered_view(model, padded, out=out, sigma=sigma), max_gain=opts.max_gain,
+                              rendered_view(model, padded, out=out, sigma=sigma, pad=pad), max_gain=opts.max_gain,
                               fmt=opts.restore_format, space=model.colour_space)
         per_view.append({"name": view.name, **stats, "seconds": round(time.perf_counter() - t0, 3)})
         ctx.on_progress("restore", (k + 1) / len(views), f"restored {k + 1}/{len(views)} photos")

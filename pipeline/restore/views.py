@@ -77,12 +77,13 @@ def photo_view(view: View, lens: LensCamera) -> tuple[View, int]:
 
 
 def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: ViewOutputs | None = None,
-                  sigma: np.ndarray | None = None) -> RenderedView:
+                  sigma: np.ndarray | None = None, pad: int = 0) -> RenderedView:
     """The model's depth, alpha and water for ``view`` (training camera), from ``out`` when the caller rendered
     it already. The homogeneous medium is three per-channel constants (exact at any resolution); a network
     medium's per-pixel A and B become effective coefficients
     (:func:`pipeline.restore.medium.coefficients_from_maps`). ``sigma``: the water's uncertainty
-    (:func:`pipeline.restore.medium.water_sigma`), for the confidence maps."""
+    (:func:`pipeline.restore.medium.water_sigma`), for the confidence maps. ``pad``: what :func:`photo_view` added
+    to ``view``'s camera on each side."""
     from pipeline.restore.medium import coefficients_from_maps
 
     medium = model.medium
@@ -103,7 +104,7 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: V
     # the model's own J where it covers the pixel (premultiplied over black: normalised by alpha), in the space
     # its physics ran in: the restoration's prior where the photo's signal is too weak
     J = np.clip(out.J / np.maximum(out.alpha, 0.5)[..., None], 0.0, 1.0).astype(np.float32)
-    return RenderedView(view.camera, out.depth.astype(np.float32), out.alpha.astype(np.float32), maps, J)
+    return RenderedView(view.camera, out.depth.astype(np.float32), out.alpha.astype(np.float32), maps, J, pad)
 
 
 def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: LensCamera, view: RenderedView, *,

@@ -50,3 +50,6 @@ def test_photo_view_pads_the_render_camera_to_the_photos_edges():
     assert u0.min() < 0  # without the pad the photo's edge lands outside the render
     plain = LensCamera("PINHOLE", 80, 60, (fr.render_camera.fx, fr.render_camera.fy, 40.0, 30.0))
     assert photo_view(view, plain) == (view, 0)
+    from pipeline.restore.guided import default_radius  # the filter's radius follows the unpadded render
+
+    assert default_radius(fr.lens, c, pad) == default_radius(fr.lens, view.camera) == 4
