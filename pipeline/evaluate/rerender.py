@@ -116,8 +116,7 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
         NOTHING_TO_RESTORE,
         job_water_sigma,
         lens_cameras,
-        photo_view,
-        rendered_view,
+        render_for_photo,
         restore_photo,
     )
     from pipeline.train.model import model_from_state
@@ -129,9 +128,8 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
     lenses = lens_cameras(layout.scene)
     sigma = job_water_sigma(job)
     for v in views:  # out/ gets the job's own folder names for them
-        padded, pad = photo_view(v, lenses[v.name])
         restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
-                      lenses[v.name], rendered_view(model, padded, sigma=sigma, pad=pad), max_gain=max_gain,
+                      lenses[v.name], render_for_photo(model, v, lenses[v.name], sigma)[0], max_gain=max_gain,
                       fmt=fmt, space=model.colour_space)
     return len(views)
 

@@ -24,15 +24,14 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         NOTHING_TO_RESTORE,
         job_water_sigma,
         lens_cameras,
-        photo_view,
-        rendered_view,
+        render_for_photo,
         restore_photo,
     )
     from pipeline.scene.images import list_images
     from pipeline.synth.ground_truth import find_ground_truth
     from pipeline.train.checkpoint import load_checkpoint
     from pipeline.train.model import model_from_state
-    from pipeline.train.render import displayed, render_outputs
+    from pipeline.train.render import displayed
 
     log = logging.getLogger(__name__)
     layout = JobLayout(job)
@@ -58,14 +57,12 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
             raise JobCancelled(f"cancelled during restore after {k} of {len(views)} photos")
         t0 = time.perf_counter()
         src = layout.images / view.name
-        padded, pad = photo_view(view, lenses[view.name])  # rendered out to the photo's own edges
-        out = render_outputs(model.gaussians, padded, model.medium, model.sh_degree, "auto", model.background)
+        rendered, out, pad = render_for_photo(model, view, lenses[view.name], sigma)  # out to the photo's edges
         if gt is not None:  # the training camera's render, as restored/ held it before
             J = displayed(out, model.colour_space).J
             renders[view.name] = J[pad:J.shape[0] - pad, pad:J.shape[1] - pad]
-        stats = restore_photo(src, layout.restored, layout.confidence, lenses[view.name],
-                              rendered_view(model, padded, out=out, sigma=sigma, pad=pad), max_gain=opts.max_gain,
-                              fmt=opts.restore_format, space=model.colour_space)
+        stats = restore_photo(src, layout.restored, layout.confidence, lenses[view.name], rendered,
+                              max_gain=opts.max_gain, fmt=opts.restore_format, space=model.colour_space)
         per_view.append({"name": view.name, **stats, "seconds": round(time.perf_counter() - t0, 3)})
         ctx.on_progress("restore", (k + 1) / len(views), f"restored {k + 1}/{len(views)} photos")
     registered = {v.name for v in views}

@@ -107,6 +107,15 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: V
     return RenderedView(view.camera, out.depth.astype(np.float32), out.alpha.astype(np.float32), maps, J, pad)
 
 
+def render_for_photo(model: TrainedModel, view: View, lens: LensCamera, sigma: np.ndarray | None = None,
+                     backend: str = "auto") -> tuple[RenderedView, ViewOutputs, int]:
+    """The model rendered for restoring ``view``'s photo (``lens``), in :func:`photo_view`'s padded camera: (what
+    the restorer reads, the render's outputs, the pad in render pixels on each side)."""
+    padded, pad = photo_view(view, lens)
+    out = render_outputs(model.gaussians, padded, model.medium, model.sh_degree, backend, model.background)
+    return rendered_view(model, padded, backend, out=out, sigma=sigma, pad=pad), out, pad
+
+
 def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: LensCamera, view: RenderedView, *,
                   max_gain: float, fmt: str, space: str) -> dict:
     """One photo de-watered (:func:`pipeline.restore.frame.restore_file`): the restored image into
