@@ -164,7 +164,7 @@ def _linear_to_srgb(x):  # pragma: no cover - numba
 
 @njit(parallel=True, cache=True)
 def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max, prior, has_prior, lam2,
-            sigma, noise2, cov, dcov, tau):  # pragma: no cover - numba
+            sigma, noise2, cov, dcov, misfit, tau):  # pragma: no cover - numba
     """The physics per pixel (twin: ``pipeline.restore.dewater.dewater_reference``).
 
     img [n, W, 3] any dtype (× ``scale`` → [0, 1]); r [n, W] float32 range; surface [n, W] bool; k_A, k_B
@@ -173,8 +173,10 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
     the prior's covariance across channels (the photo's effective noise is lam2·diag(cov)): J = P + G·e,
     e = I − B − A·P, G from :func:`_gain_matrix`; sigma [3, 3] the water's
     uncertainty (rows: log k_A, log k_B, logit B∞; columns: channels), noise2 [3] the photo's noise variance,
-    dcov [3, 3] what the model lacks (a covariance of J), tau the expected error at confidence 1/2
-    (``pipeline.restore.dewater.expected_error``). Writes J [n, W, 3] (uint8 or uint16) quantised to
+    dcov [3, 3] what the model lacks (a covariance of J), misfit [n, W, 3] or [1, 1, 3] float32 the mean of
+    e² around each pixel (:func:`misfit_terms`, box-filtered; read when ``has_prior``: the photo's local
+    disagreement with the model, max(misfit − noise2, 0) / A_eff² of J), tau the expected error at confidence
+    1/2 (``pipeline.restore.dewater.expected_error``). Writes J [n, W, 3] (uint8 or uint16) quantised to
     0..out_max; returns (confidence [n, W] float32, clipped count)."""
     n, W, _ = img.shape
     conf = np.zeros((n, W), np.float32)
@@ -183,6 +185,7 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
     tau2 = tau * tau
     full_A = 1 if k_A.shape[0] > 1 else 0  # index multipliers: 0 reads the [1, 1, 3] constant
     full_B = 1 if k_B.shape[0] > 1 else 0
+    full_M = 1 if misfit.shape[0] > 1 else 0
     for i in prange(n):
         t = np.empty((8, 3))  # per channel: A, B, x, oA, oB, e^(-oB), e = x - B - A·P, the value
         G = np.empty((3, 3))
@@ -232,6 +235,9 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
                         for b in range(3):
                             model2 += ka * dcov[a, b] * ((1.0 if b == c else 0.0) - G[c, b] * t[0, b])
                     model2 = max(model2, 0.0)
+                    # where the photo disagrees with the model beyond its noise, the model's depth, water or J is
+                    # wrong there, and so is what the restoration took from it
+                    model2 += max(np.float64(misfit[i * full_M, j * full_M, c]) - noise2[c], 0.0) / (Ae * Ae)
                 else:
                     noise = noise2[c] / (Ae * Ae)
                     model2 = 0.0
@@ -255,6 +261,66 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
             if clip:
                 clipped[i] += 1
     return conf, clipped.sum()
+
+
+@njit(parallel=True, cache=True)
+def misfit_terms(img, scale, r, surface, k_A, k_B, B_inf, linear, prior, first, q):  # pragma: no cover - numba
+    """The photo's residual against the model, e = I − B − A·P per channel (physics space, as :func:`dewater`;
+    twin: ``pipeline.restore.dewater.local_misfit_reference``), on every q-th pixel: rows first, first + q, …
+    and columns 0, q, …: [4, nc, wc] float32 of e_c² on surface pixels (0 elsewhere) and the surface
+    indicator, ready for :func:`box_mean`."""
+    n, W, _ = img.shape
+    nc, wc = (n - first + q - 1) // q, (W + q - 1) // q
+    out = np.zeros((4, nc, wc), np.float32)
+    full_A = 1 if k_A.shape[0] > 1 else 0
+    full_B = 1 if k_B.shape[0] > 1 else 0
+    for ci in prange(nc):
+        i = first + ci * q
+        for cj in range(wc):
+            j = cj * q
+            if not surface[i, j]:
+                continue
+            rr = np.float64(r[i, j])
+            if not rr >= 0.0:
+                rr = 0.0
+            ia, ja, ib, jb = i * full_A, j * full_A, i * full_B, j * full_B
+            for c in range(3):
+                kA = min(max(np.float64(k_A[ia, ja, c]), 0.0), 1e30)
+                kB = min(max(np.float64(k_B[ib, jb, c]), 0.0), 1e30)
+                x = scale * np.float64(img[i, j, c])
+                x = _srgb_to_linear(x) if linear else x
+                B = B_inf[c] * -np.expm1(-min(kB * rr, 80.0))
+                e = x - B - np.exp(-min(kA * rr, 80.0)) * np.float64(prior[i, j, c])
+                out[c, ci, cj] = e * e
+            out[3, ci, cj] = 1.0
+    return out
+
+
+@njit(parallel=True, cache=True)
+def misfit_upsample(m, first, q, i0, n, W):  # pragma: no cover - numba
+    """The window means m [4, nc, wc] (:func:`misfit_terms`' grid, box-filtered) as ratios m[:3] / m[3],
+    interpolated bilinearly (edge-clamped) to rows i0 … i0 + n − 1 (of the rows the grid was taken from: coarse
+    row k sits at row first + k·q) and every column: [n, W, 3] float32."""
+    _, nc, wc = m.shape
+    out = np.zeros((n, W, 3), np.float32)
+    for ii in prange(n):
+        y = min(max((i0 + ii - first) / q, 0.0), nc - 1.0)
+        y0 = min(int(y), max(nc - 2, 0))
+        y1 = min(y0 + 1, nc - 1)
+        t = y - y0
+        for j in range(W):
+            x = min(j / q, wc - 1.0)
+            x0 = min(int(x), max(wc - 2, 0))
+            x1 = min(x0 + 1, wc - 1)
+            u = x - x0
+            w00, w01, w10, w11 = (1 - t) * (1 - u), (1 - t) * u, t * (1 - u), t * u
+            den = w00 * m[3, y0, x0] + w01 * m[3, y0, x1] + w10 * m[3, y1, x0] + w11 * m[3, y1, x1]
+            if den <= 1e-12:
+                continue
+            for c in range(3):
+                out[ii, j, c] = (w00 * m[c, y0, x0] + w01 * m[c, y0, x1] + w10 * m[c, y1, x0]
+                                 + w11 * m[c, y1, x1]) / den
+    return out
 
 
 @njit(inline="always")

@@ -26,8 +26,11 @@ Rules (docs/DECISIONS.md, "Restoring the originals"):
   there is no surface. e_c (:func:`expected_error`) propagates what is known to be uncertain through
   J = (I − B)/A: the water's coefficients (σ of log k_A, log k_B and logit B∞, the fit's posterior from
   ``pipeline.medium.estimate``: an error δ in log k_A scales J by e^(k_A·r·δ), one in B shifts it by δB/A)
-  and the photo's noise times the gain. It grows with range, with J and where A is small, which is where
-  the restorations measured wrong (docs/DECISIONS.md, "Confidence as expected error").
+  the photo's noise times the gain, what the model lacks through its share of the pixel, and the photo's local
+  disagreement with the model beyond its noise over A² (:func:`local_misfit`: where it is large the model's
+  depth, water or J is wrong there). It grows with range, with J, where A is small and where the photo and the
+  model disagree, which is where the restorations measured wrong (docs/DECISIONS.md, "Confidence as expected
+  error").
 - No surface (alpha < 0.5, outside the render camera, or z ≤ 0): nothing is invented, J is the photo's pixel
   unchanged.
 - J is clipped to [0, 1]; the count of surface pixels with any channel clipped is returned.
@@ -71,7 +74,8 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
             B_inf: np.ndarray, *, max_gain: float = 8.0, space: str = "srgb", out_max: int = 255,
             scale: float | None = None, prior: np.ndarray | None = None, lam2: np.ndarray | None = None,
             sigma: np.ndarray | None = None, noise2: np.ndarray | None = None, detail2: np.ndarray | None = None,
-            detail_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+            detail_cov: np.ndarray | None = None, misfit: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray, int]:
     """Restore a block of pixels.
 
     Args:
@@ -88,6 +92,9 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
         model lacks, as a variance of J (:meth:`pipeline.restore.frame.FrameRestorer.calibrate`); defaults 0.
         detail_cov: [3, 3] what the model lacks as a covariance of J across channels (:func:`detail_covariance`;
         it replaces ``detail2``): the channels are solved together. None: each channel alone.
+        misfit: [n, W, 3] the mean of the squared residual e = I − B − A·J_m around each pixel
+        (:func:`local_misfit`; used with a prior): its excess over ``noise2``, over A_eff², enters the expected
+        error. None: 0.
     Returns (J [n, W, 3] uint8 or uint16, confidence [n, W] float32 in [0, 1], clipped pixel count)."""
     from pipeline.restore._kernels import dewater as kernel
 
@@ -101,8 +108,94 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
                            int(out_max), np.ascontiguousarray(prior if prior is not None else np.zeros((1, 1, 3)),
                                                               np.float32), prior is not None,
                            _lam2(lam2, max_gain), _sigma(sigma), _variance(noise2), *_covariances(detail2, detail_cov),
-                           float(CONFIDENCE_ERROR))
+                           _misfit(misfit), float(CONFIDENCE_ERROR))
     return J, conf, int(clipped)
+
+
+def _misfit(misfit: np.ndarray | None) -> np.ndarray:
+    """The local misfit as float32 [n, W, 3], or zeros [1, 1, 3] (none), NaN → 0."""
+    if misfit is None:
+        return np.zeros((1, 1, 3), np.float32)
+    return np.ascontiguousarray(np.nan_to_num(np.asarray(misfit, np.float32), nan=0.0))
+
+
+def local_misfit(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray, k_B: np.ndarray,
+                 B_inf: np.ndarray, prior: np.ndarray, radius: int, *, space: str = "srgb",
+                 scale: float | None = None, step: int = 1, row0: int = 0,
+                 out_rows: tuple[int, int] | None = None) -> np.ndarray:
+    """The photo's local disagreement with the model: the mean of e² = (I − B − A·J_m)² per channel over the
+    surface pixels around each pixel, weighted by a tent of support ``radius`` (two box means; clipped to the
+    rows given), 0 where the window holds no surface. Measured on every ``step``-th pixel (rows at multiples of
+    ``step`` counted from the frame's top, ``row0`` being the global row of ``img``'s first row; columns from
+    0), the window in those samples, and interpolated bilinearly to ``out_rows`` (local rows [a, b); default all).
+    Arguments as :func:`dewater`. Returns [b − a, W, 3] float32 (physics space).
+
+    What it is for (docs/DECISIONS.md, "Confidence as expected error"): the residual is the photo's noise plus
+    A·(what the model lacks); where it is large over a neighbourhood, the model's J, depth or water is wrong
+    there, and the restored pixel, which takes its depth and water from the model whatever its share, is
+    wrong too: on held-out photos that is most of the error the per-photo terms could not place."""
+    from pipeline.restore._kernels import box_mean, misfit_terms, misfit_upsample
+
+    if scale is None:
+        scale = 1.0 / np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else 1.0
+    q = max(1, int(step))
+    first = (-int(row0)) % q
+    a, b = out_rows if out_rows is not None else (0, img.shape[0])
+    terms = misfit_terms(np.ascontiguousarray(img), float(scale), np.ascontiguousarray(r, np.float32),
+                         np.ascontiguousarray(surface, np.bool_), _k(k_A), _k(k_B),
+                         np.asarray(B_inf, np.float64).reshape(3), space == "linear",
+                         np.ascontiguousarray(prior, np.float32), first, q)
+    for rad in _tent(max(1, round(radius / q))):
+        if rad:
+            terms = box_mean(terms, rad)
+    return misfit_upsample(terms, first, q, a, b - a, img.shape[1])
+
+
+def _tent(radius: int) -> tuple[int, int]:
+    """The radii of two box means that make a tent of support ``radius`` (a single box left square speckles
+    around isolated residuals in the map: a sand grain the model lacks)."""
+    r1 = int(radius) // 2
+    return r1, int(radius) - r1
+
+
+def local_misfit_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps,
+                           prior: np.ndarray, radius: int, *, space: str = "srgb", step: int = 1, row0: int = 0,
+                           out_rows: tuple[int, int] | None = None) -> np.ndarray:
+    """Slow twin of :func:`local_misfit` (numpy float64, each box mean and the interpolation by explicit
+    loops). img float [n, W, 3] in [0, 1]. Returns [b − a, W, 3]."""
+    from pipeline.restore.guided import _box_mean_reference
+
+    q = max(1, int(step))
+    first = (-int(row0)) % q
+    x = np.asarray(img, np.float64)[first::q, ::q]
+    x = srgb_to_linear(x) if space == "linear" else x
+    rr = np.nan_to_num(np.maximum(np.asarray(r, np.float64)[first::q, ::q], 0.0), nan=0.0)[..., None]
+    kA, kB = (np.asarray(k, np.float64)[first::q, ::q] if np.ndim(k) == 3 else k for k in (medium.k_A, medium.k_B))
+    A = np.exp(-np.clip(np.nan_to_num(kA) * rr, 0, 80))
+    B = medium.B_inf * -np.expm1(-np.clip(np.nan_to_num(kB) * rr, 0, 80))
+    s = np.asarray(surface, bool)[first::q, ::q]
+    e2 = np.where(s[..., None], (x - B - A * np.asarray(prior, np.float64)[first::q, ::q]) ** 2, 0.0)
+    terms = [e2[..., 0], e2[..., 1], e2[..., 2], s.astype(np.float64)]
+    for rad in _tent(max(1, round(radius / q))):
+        if rad:
+            terms = [_box_mean_reference(t, rad) for t in terms]
+    m = np.stack(terms)  # [4, nc, wc]
+    a, b = out_rows if out_rows is not None else (0, np.shape(img)[0])
+    nc, wc = m.shape[1:]
+    out = np.zeros((b - a, np.shape(img)[1], 3))
+    for ii, i in enumerate(range(a, b)):
+        y = min(max((i - first) / q, 0.0), nc - 1.0)
+        y0 = min(int(y), max(nc - 2, 0))
+        y1, t = min(y0 + 1, nc - 1), y - min(int(y), max(nc - 2, 0))
+        for j in range(out.shape[1]):
+            xx = min(j / q, wc - 1.0)
+            x0 = min(int(xx), max(wc - 2, 0))
+            x1, u = min(x0 + 1, wc - 1), xx - x0
+            w = np.array([(1 - t) * (1 - u), (1 - t) * u, t * (1 - u), t * u])
+            v = w[0] * m[:, y0, x0] + w[1] * m[:, y0, x1] + w[2] * m[:, y1, x0] + w[3] * m[:, y1, x1]
+            if v[3] > 1e-12:
+                out[ii, j] = v[:3] / v[3]
+    return out
 
 
 def _covariances(detail2: np.ndarray | None, detail_cov: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -220,8 +313,8 @@ def gain_matrix(A: np.ndarray, cov: np.ndarray, lam2: np.ndarray, max_gain: floa
 def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,
                       max_gain: float = 8.0, space: str = "srgb", prior: np.ndarray | None = None,
                       lam2: np.ndarray | None = None, noise2: np.ndarray | None = None,
-                      detail2: np.ndarray | None = None, detail_cov: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, int]:
+                      detail2: np.ndarray | None = None, detail_cov: np.ndarray | None = None,
+                      misfit: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Slow twin of :func:`dewater` (numpy, float64, unquantised; per-pixel matrices by ``np.linalg``). img
     float [n, W, 3] in [0, 1]. Returns (J float64 [n, W, 3] in [0, 1], confidence [n, W], clipped count)."""
     _check(max_gain, space)
@@ -243,6 +336,8 @@ def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, mediu
         K = np.eye(3) - G @ (A[..., :, None] * np.eye(3))
         noise_var = (G**2) @ n2
         model_var = np.maximum(np.einsum("...ca,ab,...cb->...c", K, dcov, K), 0.0)
+        if misfit is not None:
+            model_var = model_var + np.maximum(np.asarray(misfit, np.float64) - n2, 0.0) / Ae**2
     J = np.clip(raw, 0, 1)
     kA, kB = (np.clip(np.nan_to_num(k, nan=0.0), 0, 1e30) for k in (medium.k_A, medium.k_B))
     e = expected_error(J, rr, kA, kB, medium.B_inf, Ae, noise_var, model_var, medium.sigma)

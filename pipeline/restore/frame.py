@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from pipeline.restore.dewater import detail_covariance, dewater, noise_and_detail, prior_weights
+from pipeline.restore.dewater import detail_covariance, dewater, local_misfit, noise_and_detail, prior_weights
 from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.guided import (
     DEFAULT_EPS,
@@ -38,7 +38,7 @@ from pipeline.restore.lens import DEFAULT_TOL, LensGrid
 from pipeline.restore.records import RenderedView
 from pipeline.restore.sample import sample_maps
 from pipeline.scene.colour import srgb_to_linear
-from pipeline.scene.records import LensCamera
+from pipeline.scene.records import Camera, LensCamera
 
 logger = logging.getLogger(__name__)
 
@@ -47,6 +47,14 @@ CALIBRATION_BANDS = 6  # row bands of a photo that FrameRestorer.calibrate measu
 # a 27 MP frame's (the statistics are means over 10^5-10^6 pixels either way; 1.4 → 0.4 s on bench/restore.py)
 CALIBRATION_PIXELS = 500_000
 UNSEEN = ("extend", "keep")
+# The window of the photo's local disagreement with the model (the confidence's misfit term,
+# pipeline.restore.dewater.local_misfit): its radius in render pixels. Measured on the held-out photos of the
+# 1600x1200 turbid scene (1.75-5 render pixels) and 320x240 photo-family jobs (1-2.5): the correlation of the
+# confidence with the error hardly moves across that range (docs/DECISIONS.md, "Confidence as expected error").
+MISFIT_RADIUS = 1.5
+# samples of the misfit per window radius at most: a 27 MP photo's window (22 photo pixels) is measured on every
+# 5th pixel (the residual's exp per pixel and channel cost 3.2 s of 15 on bench/restore.py's frame at every pixel)
+MISFIT_SAMPLES = 4
 
 
 @dataclass(frozen=True)
@@ -107,6 +115,13 @@ class FrameRestorer:
                        else int(options.radius))
         self.s = default_subsample(self.radius) if self.radius > 0 else 1
         self.halo = halo_rows(self.radius, self.s) if self.radius > 0 else 0
+        # the misfit's window needs its rows' filtered depth exact: the filter's halo beyond it, in blocks of s
+        self.misfit_radius = misfit_radius(lens, view.camera, view.pad) if view.J is not None else 0
+        self.misfit_step = max(1, self.misfit_radius // MISFIT_SAMPLES)  # the misfit measured on every k-th pixel
+        # rows the misfit needs beyond a band: the window's reach plus one sample step for the interpolation
+        self.misfit_margin = ((max(1, round(self.misfit_radius / self.misfit_step)) + 1) * self.misfit_step
+                              if self.misfit_radius else 0)
+        self.halo += -(-self.misfit_margin // self.s) * self.s
         self.band_rows = -(-options.band_rows // self.s) * self.s
         depth = np.nan_to_num(np.asarray(view.depth, np.float64), nan=0.0, posinf=0.0)
         alpha = np.nan_to_num(np.asarray(view.alpha, np.float64), nan=0.0)
@@ -209,13 +224,23 @@ class FrameRestorer:
         """Restore rows [y0, y1) given the photo's rows [e0, e0 + len(rows)) (uint8/uint16/float [m, W, 3]).
         Returns (J [n, W, 3] uint8/uint16, confidence [n, W] float32, surface [n, W] bool, extension weight
         [n, W] float32, clipped count)."""
-        scale, r, surface, k_A, k_B, prior, near = self._geometry(rows, e0, y0, y1)
-        photo = rows[y0 - e0:y1 - e0]
         m = self.view.medium
+        M = self.misfit_margin
+        k0, k1 = max(e0, y0 - M), min(e0 + rows.shape[0], y1 + M)  # the rows the misfit's window reaches
+        scale, r, surface, k_A, k_B, prior, near = self._geometry(rows, e0, k0, k1)
+        misfit = None
+        if prior is not None:
+            misfit = local_misfit(rows[k0 - e0:k1 - e0], r, surface, k_A, k_B, m.B_inf, prior, self.misfit_radius,
+                                  space=self.opt.space, scale=scale, step=self.misfit_step, row0=k0,
+                                  out_rows=(y0 - k0, y1 - k0))
+            c = slice(y0 - k0, y1 - k0)
+            r, surface, prior, near = r[c], surface[c], prior[c], near[c]
+            k_A, k_B = (k[c] if np.ndim(k) == 3 else k for k in (k_A, k_B))
+        photo = rows[y0 - e0:y1 - e0]
         J, conf, clipped = dewater(photo, r, surface, k_A, k_B, m.B_inf, max_gain=self.opt.max_gain,
                                    space=self.opt.space, out_max=out_max, scale=scale, prior=prior, lam2=self.lam2,
                                    sigma=m.sigma, noise2=self.noise2, detail2=self.detail2,
-                                   detail_cov=self.detail_cov)
+                                   detail_cov=self.detail_cov, misfit=misfit)
         w = np.zeros_like(near)
         sel = near > 0  # off the surface but near it: only these pixels can be carried on
         if sel.any():
@@ -315,6 +340,12 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
     logger.info("restored %s: %.2f s, %d surface pixels, %d clipped", src.name, res.seconds, res.surface_pixels,
                 res.clipped)
     return res
+
+
+def misfit_radius(lens: LensCamera, camera: Camera, pad: int = 0) -> int:
+    """The misfit window's radius in photo pixels: :data:`MISFIT_RADIUS` render pixels at the upsampling factor
+    photo width / render width (without ``pad``, as :func:`~pipeline.restore.guided.default_radius`), at least 2."""
+    return max(2, round(MISFIT_RADIUS * lens.width / (camera.width - 2 * pad)))
 
 
 def reach_weight(ok: np.ndarray, reach_px: float) -> np.ndarray:

@@ -6,7 +6,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from pipeline.restore.frame import RestoreOptions, restore_array, restore_file
+from pipeline.restore.frame import FrameRestorer, RestoreOptions, restore_array, restore_file
 from pipeline.restore.synthetic import SynthFrame
 
 
@@ -67,6 +67,48 @@ def test_bands_equal_one_band(frame):
     b = restore_array(photo, fr.lens, rv, RestoreOptions(band_rows=480))
     assert (a.surface == b.surface).all()
     assert np.abs(a.J.astype(int) - b.J).max() <= 1 and (a.J != b.J).mean() < 1e-3  # float rounding only
+    # with the model's J as the prior the confidence reads a window of rows around each pixel (the misfit); the
+    # same calibration for both (it measures on bands, which differ)
+    rp = fr.render(prior=True)
+    out = []
+    for rows in (64, 480):
+        f = FrameRestorer(fr.lens, rp, RestoreOptions(band_rows=rows))
+        if not out:
+            f.calibrate(lambda e0, e1: photo[e0:e1])
+            cal = (f.lam2, f.noise2, f.detail2, f.detail_cov)
+        f.lam2, f.noise2, f.detail2, f.detail_cov = cal
+        J, conf = np.empty_like(photo), np.empty(photo.shape[:2], np.float32)
+        for e0, y0, y1, e1 in f.bands():
+            J[y0:y1], conf[y0:y1], *_ = f.band(photo[e0:e1], e0, y0, y1)
+        out.append((J, conf))
+    (Ja, ca), (Jb, cb) = out
+    assert np.abs(Ja.astype(int) - Jb).max() <= 1 and np.abs(ca - cb).max() < 1e-4
+
+
+def test_confidence_is_low_where_the_model_is_wrong(frame):
+    """A patch of the model's J off by a third (what a held-out photo shows where the model is wrong): the
+    restored pixels there lean on it and are wrong, and the confidence says so (the photo's local disagreement
+    with the model, ``local_misfit``); the rest of the frame keeps its confidence."""
+    fr, I, J, surf, rv = frame
+    photo = (I * 255 + 0.5).astype(np.uint8)
+    rp = fr.render(prior=True)
+    rp = dataclasses.replace(rp, medium=dataclasses.replace(rp.medium, sigma=np.full((3, 3), 0.02)))  # well measured
+    wrong = rp.J.copy()
+    wrong[30:50, 50:75] *= 0.67  # render pixels; x8 in the photo: rows ~240-400, columns ~400-600
+    bad = dataclasses.replace(rp, J=wrong)
+    good, res = restore_array(photo, fr.lens, rp), restore_array(photo, fr.lens, bad)
+    patch = np.zeros_like(surf)
+    patch[260:380, 420:580] = True
+    m = res.surface & surf
+    err = np.abs(res.J / 255 - J).mean(-1)
+    assert err[patch & m].mean() > 2 * err[~patch & m].mean()  # the restoration is wrong there
+    c_in, c_out = res.confidence[patch & m].mean(), res.confidence[~patch & m].mean()
+    # measured 0.34 against 0.83 (without the misfit term 0.92, above the rest)
+    assert c_in < 0.5 * c_out, (c_in, c_out)
+    # elsewhere it moves only by the photo's calibration (σ_d, λ² per photo, which the wrong patch raises):
+    # measured 0.888 -> 0.826
+    assert c_out > 0.9 * good.confidence[~patch & m].mean()
+    assert np.corrcoef(res.confidence[m], err[m])[0, 1] < -0.3
 
 
 @pytest.mark.parametrize("ext", [".jpg", ".png"])

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from pipeline.restore.dewater import dewater, dewater_reference
+from pipeline.restore.dewater import dewater, dewater_reference, local_misfit, local_misfit_reference
 from pipeline.restore.guided import fast_guided_filter, fill_invalid, guided_filter, guided_filter_reference
 from pipeline.restore.records import MediumMaps
 from pipeline.restore.sample import sample_maps, sample_maps_reference
@@ -64,3 +64,19 @@ def test_dewater_matches_reference_both_spaces_and_map_coefficients():
                 Jr, cr, nr = dewater_reference(img, r, surf, m, max_gain=g, space=space, prior=prior, lam2=lam2,
                                                noise2=noise2, detail_cov=cov)
                 assert np.abs(J / 65535 - Jr).max() < 2e-5 and np.abs(c - cr).max() < 1e-5 and n == nr
+            # the photo's local disagreement with the model: window means, and through the expected error
+            for rad, step, row0, rows in ((1, 1, 0, None), (3, 1, 0, None), (5, 2, 3, (2, 11)), (6, 3, 7, (0, 13))):
+                mis = local_misfit(img, r, surf, m.k_A, m.k_B, m.B_inf, prior, rad, space=space, step=step,
+                                   row0=row0, out_rows=rows)
+                mr = local_misfit_reference(img, r, surf, m, prior, rad, space=space, step=step, row0=row0,
+                                            out_rows=rows)
+                assert mis.shape == mr.shape and np.abs(mis - mr).max() < 1e-5 * max(1.0, mr.max())
+            mr = local_misfit_reference(img, r, surf, m, prior, 2, space=space)
+            J, c, n = dewater(img, r, surf, m.k_A, m.k_B, m.B_inf, space=space, out_max=65535, prior=prior,
+                              lam2=lam2, sigma=sigma, noise2=noise2, detail_cov=cov, misfit=mr)
+            Jr, cr2, nr = dewater_reference(img, r, surf, m, space=space, prior=prior, lam2=lam2, noise2=noise2,
+                                            detail_cov=cov, misfit=mr)
+            assert np.abs(J / 65535 - Jr).max() < 2e-5 and np.abs(c - cr2).max() < 1e-5 and n == nr
+            _, c0, _ = dewater_reference(img, r, surf, m, space=space, prior=prior, lam2=lam2, noise2=noise2,
+                                         detail_cov=cov)
+            assert (cr2 <= c0 + 1e-12).all() and (cr2 < c0 - 1e-3).mean() > 0.3  # the misfit only lowers it
