@@ -174,10 +174,10 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
     e = I − B − A·P, G from :func:`_gain_matrix`; sigma [3, 3] the water's
     uncertainty (rows: log k_A, log k_B, logit B∞; columns: channels), noise2 [3] the photo's noise variance,
     dcov [3, 3] what the model lacks (a covariance of J), misfit [n, W, 3] or [1, 1, 3] float32 the mean of
-    e² around each pixel (:func:`misfit_terms`, box-filtered; read when ``has_prior``: the photo's local
-    disagreement with the model, max(misfit − noise2, 0) / A_eff² of J), tau the expected error at confidence
-    1/2 (``pipeline.restore.dewater.expected_error``). Writes J [n, W, 3] (uint8 or uint16) quantised to
-    0..out_max; returns (confidence [n, W] float32, clipped count)."""
+    e² around each pixel (:func:`misfit_terms`, tent-filtered, :func:`misfit_upsample`; read when
+    ``has_prior``: the photo's local disagreement with the model, max(misfit − noise2, 0) / A_eff² of J), tau
+    the expected error at confidence 1/2 (``pipeline.restore.dewater.expected_error``). Writes J [n, W, 3]
+    (uint8 or uint16) quantised to 0..out_max; returns (confidence [n, W] float32, clipped count)."""
     n, W, _ = img.shape
     conf = np.zeros((n, W), np.float32)
     clipped = np.zeros(n, np.int64)

@@ -186,7 +186,7 @@ def local_misfit_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, 
     for ii, i in enumerate(range(a, b)):
         y = min(max((i - first) / q, 0.0), nc - 1.0)
         y0 = min(int(y), max(nc - 2, 0))
-        y1, t = min(y0 + 1, nc - 1), y - min(int(y), max(nc - 2, 0))
+        y1, t = min(y0 + 1, nc - 1), y - y0
         for j in range(out.shape[1]):
             xx = min(j / q, wc - 1.0)
             x0 = min(int(xx), max(wc - 2, 0))

@@ -48,12 +48,12 @@ CALIBRATION_BANDS = 6  # row bands of a photo that FrameRestorer.calibrate measu
 CALIBRATION_PIXELS = 500_000
 UNSEEN = ("extend", "keep")
 # The window of the photo's local disagreement with the model (the confidence's misfit term,
-# pipeline.restore.dewater.local_misfit): its radius in render pixels. Measured on the held-out photos of the
-# 1600x1200 turbid scene (1.75-5 render pixels) and 320x240 photo-family jobs (1-2.5): the correlation of the
-# confidence with the error hardly moves across that range (docs/DECISIONS.md, "Confidence as expected error").
+# pipeline.restore.dewater.local_misfit): its radius in render pixels. Probed on the held-out photos of the
+# 1600x1200 turbid scene (1.75 and 5 render pixels) and of 320x240 photo-family jobs (2 and 5): the correlation of
+# the confidence with the error moved by at most 0.06 per frame (docs/DECISIONS.md, "Confidence as expected error").
 MISFIT_RADIUS = 1.5
 # samples of the misfit per window radius at most: a 27 MP photo's window (22 photo pixels) is measured on every
-# 5th pixel (the residual's exp per pixel and channel cost 3.2 s of 15 on bench/restore.py's frame at every pixel)
+# 5th pixel (at every pixel the residual cost bench/restore.py's frame +4.5 s, sampled +1.5 s, two jobs beside it)
 MISFIT_SAMPLES = 4
 
 
