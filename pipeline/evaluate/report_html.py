@@ -295,7 +295,9 @@ def _quality(q: dict | None) -> str:
     if not q:
         return "<div class=ok><b>Model quality</b>: not measured (job trained before the check existed).</div>"
     pc = q.get("point_coverage_min")
-    line = (f"{q['n_gaussians']:,} Gaussians (budget {q['budget']:,}); training views covered (alpha ≥ 0.5): "
+    cap = q.get("cap") or 0
+    budget = f"budget {q['budget']:,}" + (f"; the run's cap {cap:,}" if cap > q["budget"] else "")
+    line = (f"{q['n_gaussians']:,} Gaussians ({budget}); training views covered (alpha ≥ 0.5): "
             f"at least {100 * q['coverage_min']:.1f}% of pixels"
             + (f", {100 * pc:.1f}% of their sparse points" if pc is not None else "")
             + (f" ({100 * q['point_depth_min']:.0f}% or more of them at the points' distance)"

@@ -69,8 +69,10 @@ def gaussian_budget(views: Sequence[View], cap: int) -> int:
 def _assess(ckpt: Path, scene: Scene, images: Sequence, cfg: TrainConfig) -> dict:
     state = load_checkpoint(ckpt)
     views, targets = prepare_images(scene.views, images, cfg.downscale, torch.device("cpu"))
-    return assess_state(state, scene, views, gaussian_budget(views, cfg.densify.max_gaussians), cfg.backend,
-                        AsNumpy(targets))  # one view made float at a time
+    quality = assess_state(state, scene, views, gaussian_budget(views, cfg.densify.max_gaussians), cfg.backend,
+                           AsNumpy(targets))  # one view made float at a time
+    # the run's own densification cap: above the budget in the explicit modes, whose cap is the preset's
+    return {**quality, "cap": int(cfg.densify.max_gaussians)}
 
 
 def train_checked(scene: Scene, images: Sequence, cfg: TrainConfig, checkpoint_dir: str | Path, *,

@@ -235,3 +235,14 @@ def test_export_writes_the_spz_beside_the_ply(job, record_property):
     assert (s["means"] - p["means"]).abs().max() <= 0.5 / 2 ** head["fractional_bits"] + 1e-5
     assert (torch.sigmoid(s["opacities"]) - torch.sigmoid(p["opacities"])).abs().max() <= 0.5 / 255 + 1e-6
     assert (s["scales"] - p["scales"].clamp(-10, 255 / 16 - 10)).abs().max() <= 1 / 32 + 1e-5
+
+
+def test_quality_names_the_runs_cap_when_it_is_above_the_budget():
+    """An explicit mode densifies up to the preset's cap, past the pixel budget the count is judged against: the
+    report says both, so 89,901 Gaussians against a budget of 56,763 does not read as a fault."""
+    from pipeline.evaluate.report_html import _quality
+
+    q = {"n_gaussians": 89_901, "budget": 56_763, "cap": 100_000, "coverage_min": 1.0, "warnings": []}
+    assert "(budget 56,763; the run&#x27;s cap 100,000)" in _quality(q)  # the line is HTML-escaped
+    assert "(budget 56,763)" in _quality({**q, "cap": 56_763})
+    assert "(budget 56,763)" in _quality({k: v for k, v in q.items() if k != "cap"})  # jobs from before the cap
