@@ -162,6 +162,14 @@ def _linear_to_srgb(x):  # pragma: no cover - numba
     return 12.92 * x if x <= 0.0031308 else 1.055 * x ** (1.0 / 2.4) - 0.055
 
 
+@njit(inline="always")
+def _optical_depths(kA, kB, rr):  # pragma: no cover - numba
+    """(k_A·r, k_B·r) of one channel, each coefficient clamped to [0, 1e30] and each depth to 80 (e^-80 ≈ 0)."""
+    kA = min(max(np.float64(kA), 0.0), 1e30)
+    kB = min(max(np.float64(kB), 0.0), 1e30)
+    return min(kA * rr, 80.0), min(kB * rr, 80.0)
+
+
 @njit(parallel=True, cache=True)
 def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_max, prior, has_prior, lam2,
             sigma, noise2, cov, dcov, misfit, tau):  # pragma: no cover - numba
@@ -200,10 +208,7 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
                 rr = 0.0
             ia, ja, ib, jb = i * full_A, j * full_A, i * full_B, j * full_B
             for c in range(3):
-                kA = min(max(np.float64(k_A[ia, ja, c]), 0.0), 1e30)
-                kB = min(max(np.float64(k_B[ib, jb, c]), 0.0), 1e30)
-                t[3, c] = min(kA * rr, 80.0)
-                t[4, c] = min(kB * rr, 80.0)
+                t[3, c], t[4, c] = _optical_depths(k_A[ia, ja, c], k_B[ib, jb, c], rr)
                 t[0, c] = np.exp(-t[3, c])
                 t[5, c] = np.exp(-t[4, c])
                 t[1, c] = B_inf[c] * -np.expm1(-t[4, c])
@@ -285,12 +290,10 @@ def misfit_terms(img, scale, r, surface, k_A, k_B, B_inf, linear, prior, first, 
                 rr = 0.0
             ia, ja, ib, jb = i * full_A, j * full_A, i * full_B, j * full_B
             for c in range(3):
-                kA = min(max(np.float64(k_A[ia, ja, c]), 0.0), 1e30)
-                kB = min(max(np.float64(k_B[ib, jb, c]), 0.0), 1e30)
+                oA, oB = _optical_depths(k_A[ia, ja, c], k_B[ib, jb, c], rr)
                 x = scale * np.float64(img[i, j, c])
                 x = _srgb_to_linear(x) if linear else x
-                B = B_inf[c] * -np.expm1(-min(kB * rr, 80.0))
-                e = x - B - np.exp(-min(kA * rr, 80.0)) * np.float64(prior[i, j, c])
+                e = x - B_inf[c] * -np.expm1(-oB) - np.exp(-oA) * np.float64(prior[i, j, c])
                 out[c, ci, cj] = e * e
             out[3, ci, cj] = 1.0
     return out

@@ -167,12 +167,9 @@ def local_misfit_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, 
 
     q = max(1, int(step))
     first = (-int(row0)) % q
-    x = np.asarray(img, np.float64)[first::q, ::q]
-    x = srgb_to_linear(x) if space == "linear" else x
-    rr = np.nan_to_num(np.maximum(np.asarray(r, np.float64)[first::q, ::q], 0.0), nan=0.0)[..., None]
     kA, kB = (np.asarray(k, np.float64)[first::q, ::q] if np.ndim(k) == 3 else k for k in (medium.k_A, medium.k_B))
-    A = np.exp(-np.clip(np.nan_to_num(kA) * rr, 0, 80))
-    B = medium.B_inf * -np.expm1(-np.clip(np.nan_to_num(kB) * rr, 0, 80))
+    x, _, A, B = _physics_reference(np.asarray(img)[first::q, ::q], np.asarray(r)[first::q, ::q], kA, kB,
+                                    medium.B_inf, space)
     s = np.asarray(surface, bool)[first::q, ::q]
     e2 = np.where(s[..., None], (x - B - A * np.asarray(prior, np.float64)[first::q, ::q]) ** 2, 0.0)
     terms = [e2[..., 0], e2[..., 1], e2[..., 2], s.astype(np.float64)]
@@ -310,6 +307,18 @@ def gain_matrix(A: np.ndarray, cov: np.ndarray, lam2: np.ndarray, max_gain: floa
     return m[..., :, None] * G + ((1 - m) * A / (A * A + lam2))[..., :, None] * np.eye(3)
 
 
+def _physics_reference(img: np.ndarray, r: np.ndarray, k_A: np.ndarray, k_B: np.ndarray, B_inf: np.ndarray,
+                       space: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The twins' shared start, float64: (the photo in the physics' space [n, W, 3], the range r [n, W, 1] with
+    NaN and negatives at 0, A and B [n, W, 3])."""
+    x = np.asarray(img, np.float64)
+    x = srgb_to_linear(x) if space == "linear" else x
+    rr = np.nan_to_num(np.maximum(np.asarray(r, np.float64), 0.0), nan=0.0)[..., None]
+    A = np.exp(-np.clip(np.nan_to_num(k_A) * rr, 0, 80))
+    B = B_inf * -np.expm1(-np.clip(np.nan_to_num(k_B) * rr, 0, 80))
+    return x, rr, A, B
+
+
 def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, medium: MediumMaps, *,
                       max_gain: float = 8.0, space: str = "srgb", prior: np.ndarray | None = None,
                       lam2: np.ndarray | None = None, noise2: np.ndarray | None = None,
@@ -318,11 +327,7 @@ def dewater_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, mediu
     """Slow twin of :func:`dewater` (numpy, float64, unquantised; per-pixel matrices by ``np.linalg``). img
     float [n, W, 3] in [0, 1]. Returns (J float64 [n, W, 3] in [0, 1], confidence [n, W], clipped count)."""
     _check(max_gain, space)
-    x = np.asarray(img, np.float64)
-    x = srgb_to_linear(x) if space == "linear" else x
-    rr = np.nan_to_num(np.maximum(np.asarray(r, np.float64), 0.0), nan=0.0)[..., None]
-    A = np.exp(-np.clip(np.nan_to_num(medium.k_A) * rr, 0, 80))
-    B = medium.B_inf * -np.expm1(-np.clip(np.nan_to_num(medium.k_B) * rr, 0, 80))
+    x, rr, A, B = _physics_reference(img, r, medium.k_A, medium.k_B, medium.B_inf, space)
     Ae = np.maximum(A, 1.0 / max_gain)
     n2 = _variance(noise2)
     if prior is None:

@@ -33,6 +33,7 @@ from pipeline.restore.guided import (
     fast_guided_filter,
     fill_invalid,
     halo_rows,
+    upsampling_factor,
 )
 from pipeline.restore.lens import DEFAULT_TOL, LensGrid
 from pipeline.restore.records import RenderedView
@@ -343,9 +344,9 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
 
 
 def misfit_radius(lens: LensCamera, camera: Camera, pad: int = 0) -> int:
-    """The misfit window's radius in photo pixels: :data:`MISFIT_RADIUS` render pixels at the upsampling factor
-    photo width / render width (without ``pad``, as :func:`~pipeline.restore.guided.default_radius`), at least 2."""
-    return max(2, round(MISFIT_RADIUS * lens.width / (camera.width - 2 * pad)))
+    """The misfit window's radius in photo pixels: :data:`MISFIT_RADIUS` render pixels at the
+    :func:`~pipeline.restore.guided.upsampling_factor`, at least 2."""
+    return max(2, round(MISFIT_RADIUS * upsampling_factor(lens, camera, pad)))
 
 
 def reach_weight(ok: np.ndarray, reach_px: float) -> np.ndarray:

@@ -19,11 +19,16 @@ from pipeline.scene.records import Camera, LensCamera
 DEFAULT_EPS = 1e-4  # guide luminance variance units (luminance in [0, 1]); measured: bench/restore.py --filter
 
 
+def upsampling_factor(lens: LensCamera, camera: Camera, pad: int = 0) -> float:
+    """Photo pixels per render pixel: photo width / render width, the render's width without the ``pad`` pixels
+    :func:`pipeline.restore.views.photo_view` added on each side."""
+    return lens.width / (camera.width - 2 * pad)
+
+
 def default_radius(lens: LensCamera, camera: Camera, pad: int = 0) -> int:
-    """The filter radius in photo pixels: half the upsampling factor photo width / render width (the render's
-    width without the ``pad`` pixels :func:`pipeline.restore.views.photo_view` added on each side), at least 1
-    (a radius of the whole factor blurs a depth step more than bilinear does: bench/restore.py --filter)."""
-    return max(1, round(lens.width / (camera.width - 2 * pad) / 2))
+    """The filter radius in photo pixels: half the :func:`upsampling_factor`, at least 1 (a radius of the whole
+    factor blurs a depth step more than bilinear does: bench/restore.py --filter)."""
+    return max(1, round(upsampling_factor(lens, camera, pad) / 2))
 
 
 def default_subsample(radius: int) -> int:

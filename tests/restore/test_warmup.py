@@ -87,7 +87,7 @@ def test_warmup_leaves_nothing_for_a_restore_to_compile():
     assert res["runs"] == 72
     before = res["before"]
     # not vacuous: every kernel a job calls was compiled (or loaded), dewater for each (photo, J) dtype pair
-    used = set(before) - {"guided_apply", "_srgb_to_linear", "_linear_to_srgb", "_gain_matrix"}
+    used = set(before) - {"guided_apply", "_srgb_to_linear", "_linear_to_srgb", "_gain_matrix", "_optical_depths"}
     kernels = {"interp_grid_rows", "sample_bilinear", "box_mean", "guided_stats", "guided_coeffs", "luminance",
                "dewater", "misfit_terms", "misfit_upsample", "block_mean", "upsample_apply"}
     assert used == kernels, sorted(before)
