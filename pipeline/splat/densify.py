@@ -5,12 +5,13 @@ gradient, integer ``radii`` [C, N, 2], ``width``, ``height``, ``n_cameras``) and
 with plain torch (``gsplat.strategy.ops``). No gsplat CUDA op is reached: ``ops`` imports
 ``quat_scale_to_covar_preci``/``compute_relocation`` but only MCMC's relocation calls them.
 
-``_Strategy`` subclasses it for three reasons, each small:
+``_Strategy`` subclasses it for four reasons, each small:
 - gsplat 1.5.3 never resets opacities: its test ``step % reset_every == 0 & step > 0`` parses as
   ``step % reset_every == (0 & step) > 0``, which is always False (upstream PR nerfstudio-project/gsplat#776,
   open). 3DGS resets every 3000 iterations, so we do too.
 - ``max_gaussians``: growth stops at a cap (highest gradients first), a guard for 2-core machines.
-- counts are returned and logged instead of ``print``ed, and no ``torch.cuda.empty_cache()``.
+- counts are returned and logged instead of ``print``ed, and no ``torch.cuda.empty_cache()``;
+- the per-step gradient bookkeeping of one camera as masked adds (the same sums, fewer passes).
 
 Randomness: ``split`` samples new positions from torch's global generator; the trainer seeds it and keeps its
 state in checkpoints so a resumed run splits identically.
@@ -85,6 +86,25 @@ def _make_strategy(cfg: DensifyConfig) -> Any:
             if event is not None:
                 event.n_gaussians = len(params["means"])
             return event
+
+        @torch.no_grad()
+        def _update_state(self, params, state, info, packed=False):  # type: ignore[no-untyped-def]
+            """DefaultStrategy._update_state for one camera, as masked adds: the same sums (a Gaussian gets its
+            own gradient norm or exactly 0), without the row gathers and index_add_ of the general path
+            (~3 of the ~5 ms its bookkeeping took a step at 100k Gaussians). Other cases: gsplat's."""
+            radii = info.get("radii")
+            if packed or self.absgrad or self.refine_scale2d_stop_iter > 0 or radii is None or radii.shape[0] != 1:
+                return super()._update_state(params, state, info, packed=packed)
+            n = len(params["means"])
+            grad = info[self.key_for_gradient].grad[0]  # [N, 2]
+            scale = grad.new_tensor([info["width"] / 2.0 * info["n_cameras"], info["height"] / 2.0 * info["n_cameras"]])
+            sel = (radii[0] > 0.0).all(dim=-1)  # [N]
+            if state["grad2d"] is None:
+                state["grad2d"] = torch.zeros(n, device=grad.device)
+            if state["count"] is None:
+                state["count"] = torch.zeros(n, device=grad.device)
+            state["grad2d"].add_(torch.where(sel, (grad * scale).norm(dim=-1), 0.0))
+            state["count"].add_(sel.to(torch.float32))
 
         @torch.no_grad()
         def _grow_gs(self, params, optimizers, state, step):  # type: ignore[no-untyped-def]
