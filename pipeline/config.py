@@ -191,6 +191,13 @@ class TrainConfig:
     # torch.compile the step's loss graphs: "auto" for runs of >= 2,000 iterations when a C++ compiler is found,
     # "on", "off" (pipeline.train.jit; the same losses, fused: numbers agree to float rounding)
     compile_losses: str = "auto"
+    # Coarse start (issue 16): iterations 1..coarse_fraction x iterations train on the images and cameras shrunk
+    # coarse_downscale times (area averaging), never past the medium's start in medium modes
+    # (pipeline.train.schedule.coarse_iterations). The early model is coarse anyway; its steps cost a quarter of
+    # the pixels. 0 = full resolution throughout (graphdeco's recipe; the presets fast and balanced use 1/3:
+    # docs/DECISIONS.md, "Whole-job speed").
+    coarse_fraction: float = 0.0
+    coarse_downscale: int = 2
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     medium: MediumConfig = field(default_factory=MediumConfig)  # used by the homogeneous and dualphys modes
 
@@ -203,6 +210,9 @@ class TrainConfig:
         if self.mode not in ("3dgs", "homogeneous", "dualphys"):
             raise ValueError(f"mode must be 3dgs, homogeneous or dualphys, got {self.mode!r}")
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))
+        if not 0.0 <= self.coarse_fraction <= 1.0 or self.coarse_downscale < 1:
+            raise ValueError(f"coarse_fraction must be in [0, 1] and coarse_downscale >= 1, got "
+                             f"{self.coarse_fraction}, {self.coarse_downscale}")
         if len(self.background) != 3:
             raise ValueError(f"background must have 3 components, got {self.background}")
 
@@ -228,14 +238,18 @@ def scaled_train_config(iterations: int, checkpoint_every: int, max_gaussians: i
     return rescheduled(TrainConfig(), iterations, checkpoint_every=checkpoint_every, max_gaussians=max_gaussians)
 
 
-# fast: a preview (refine 50-1500 every 100, reset at 1000, SH +1 every 100, at most 100k Gaussians);
-# balanced: a third of the paper schedule (refine 167-5000, reset every 1000, at most 300k);
+# fast: a preview (refine 50-1500 every 100, reset at 1000, SH +1 every 100, at most 100k Gaussians, the first
+# third at half resolution);
+# balanced: a third of the paper schedule (refine 167-5000, reset every 1000, at most 300k, the first third at half
+# resolution);
 # paper: graphdeco's 30k recipe unchanged, no cap.
 # The configs are frozen; derive variants with ``dataclasses.replace`` (the resolved job config:
 # pipeline.train.resolve).
 TRAIN_PRESETS: dict[str, TrainConfig] = {
-    "fast": scaled_train_config(3_000, checkpoint_every=500, max_gaussians=100_000),
-    "balanced": scaled_train_config(10_000, checkpoint_every=1000, max_gaussians=300_000),
+    "fast": dataclasses.replace(scaled_train_config(3_000, checkpoint_every=500, max_gaussians=100_000),
+                                coarse_fraction=1 / 3),
+    "balanced": dataclasses.replace(scaled_train_config(10_000, checkpoint_every=1000, max_gaussians=300_000),
+                                    coarse_fraction=1 / 3),
     "paper": scaled_train_config(30_000, checkpoint_every=2000, max_gaussians=0),
 }
 

@@ -155,12 +155,14 @@ def _schedule(s: dict | None) -> str:
               f"{fmt(s['factor'])})" if s["explicit_iterations"] else f"the preset x {fmt(s['factor'])}")
     cap = fmt(s["max_gaussians"]) if s["max_gaussians"] else "none"
     medium = f"; the water model starts after iteration {fmt(s['medium_start'])}" if s["medium_start"] else ""
+    coarse = (f". Iterations 1-{fmt(s['coarse_until'])} trained at {fmt(s['coarse_width'])}x"
+              f"{fmt(s['coarse_height'])} (the coarse start)" if s.get("coarse_until") else "")
     return (f"<h2>Schedule</h2><p>{fmt(s['views'])} views ({fmt(s['train_views'])} trained on) at "
             f"{fmt(s['width'])}x{fmt(s['height'])}: {fmt(s['pixels'])} training pixels. Rule: "
             f"<code>{escape(s['rule'])}</code>. <b>{fmt(s['iterations'])} iterations</b>, {length}: "
             f"{fmt(s['passes'], 1)} passes over the training views. Densification every {fmt(s['refine_every'])} "
             f"iterations from {fmt(s['refine_start'])} to {fmt(s['refine_stop'])}, opacity reset every "
-            f"{fmt(s['reset_every'])}; Gaussian budget {cap}{medium}.</p>")
+            f"{fmt(s['reset_every'])}; Gaussian budget {cap}{medium}{coarse}.</p>")
 
 
 def _selection(r: dict) -> str:

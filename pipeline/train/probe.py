@@ -181,13 +181,14 @@ def probe_config(base: TrainConfig, cfg: ProbeConfig, width: int, mode: str) -> 
     """``base`` (the job's resolved config, ``pipeline.train.resolve``) as a short run of ``mode`` in the probe's
     schedule: warm-up + iterations with the 30k schedule compressed to fit, the probe's Gaussian cap and SH
     degree, its image width, the medium (``base``'s, with the water decision) on right after the warm-up; no
-    checkpoints, log lines or held-out evaluation."""
+    coarse start (the probe's images are small already), checkpoints, log lines or held-out evaluation."""
     total = cfg.warmup + cfg.iterations
     c = rescheduled(base, total, checkpoint_every=0, max_gaussians=cfg.max_gaussians)
     medium = dataclasses.replace(base.medium, start_fraction=cfg.warmup / total,
                                  lr_reference_iterations=cfg.lr_reference_iterations)
     return dataclasses.replace(c, mode=mode, log_every=0, eval_every=0, sh_degree=cfg.sh_degree,
-                               downscale=max(1, math.ceil(width / cfg.max_width)), medium=medium)
+                               downscale=max(1, math.ceil(width / cfg.max_width)), medium=medium,
+                               coarse_fraction=0.0)
 
 
 def _render_held(trainer, views: Sequence[View]) -> list:

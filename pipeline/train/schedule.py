@@ -56,6 +56,14 @@ def survey_cap(preset_cap: int, views: int) -> int:
     return min(MAX_GAUSSIANS, round(preset_cap * max(1.0, views / REFERENCE_VIEWS)))
 
 
+def coarse_iterations(iterations: int, fraction: float, medium_start: int | None) -> int:
+    """How many of the first iterations train at the coarse size (``TrainConfig.coarse_fraction``): the fraction
+    of the run, and in medium modes never past the medium's start (the water is fitted at the training size
+    only, so the coarse phase is J's warm-up alone)."""
+    n = round(iterations * fraction)
+    return n if medium_start is None else min(n, medium_start)
+
+
 @dataclass(frozen=True)
 class Schedule:
     """What the report states about a job's schedule (report.json ``schedule``)."""
@@ -76,10 +84,13 @@ class Schedule:
     reset_every: int
     max_gaussians: int  # the Gaussian budget trained with (0 = no cap)
     medium_start: int | None  # the iteration after which the medium is on (a fixed fraction of the run); None: 3dgs
+    coarse_until: int = 0  # iterations 1..coarse_until train at the coarse size (TrainConfig.coarse_fraction)
+    coarse_width: int = 0  # the coarse size (0: no coarse phase)
+    coarse_height: int = 0
 
     def to_json(self) -> dict:
         return asdict(self)
 
 
-__all__ = ["ITERATIONS_EXPONENT", "MAX_FACTOR", "REFERENCE_VIEWS", "RULE", "Schedule", "iterations_factor",
-           "survey_cap", "survey_iterations"]
+__all__ = ["ITERATIONS_EXPONENT", "MAX_FACTOR", "REFERENCE_VIEWS", "RULE", "Schedule", "coarse_iterations",
+           "iterations_factor", "survey_cap", "survey_iterations"]

@@ -69,7 +69,7 @@ def job_schedule(cfg: TrainConfig, views: int, train_scene, explicit: bool) -> d
     from dataclasses import replace
 
     from pipeline.scene.records import scaled_view
-    from pipeline.train.schedule import RULE, Schedule, iterations_factor
+    from pipeline.train.schedule import RULE, Schedule, coarse_iterations, iterations_factor
     from pipeline.water.controller import medium_start_iteration
 
     cam = scaled_view(train_scene.views[0], cfg.downscale).camera
@@ -78,13 +78,16 @@ def job_schedule(cfg: TrainConfig, views: int, train_scene, explicit: bool) -> d
     medium = cfg.mode != "3dgs"
     if medium:  # what the trainer does with the schedule in a medium mode
         d = replace(d, refine_stop=round(d.refine_stop * d.medium_refine_factor))
+    medium_start = medium_start_iteration(cfg.iterations, cfg.medium.start_fraction) if medium else None
+    coarse = coarse_iterations(cfg.iterations, cfg.coarse_fraction, medium_start)
+    small = scaled_view(scaled_view(train_scene.views[0], cfg.downscale), cfg.coarse_downscale).camera
     return Schedule(views=views, train_views=n, width=cam.width, height=cam.height, pixels=n * cam.width * cam.height,
                     rule=RULE, factor=round(iterations_factor(views), 4), iterations=cfg.iterations,
                     explicit_iterations=explicit, passes=round(cfg.iterations / max(1, n), 2),
                     refine_every=d.refine_every, refine_start=d.refine_start, refine_stop=d.refine_stop,
                     reset_every=d.reset_every, max_gaussians=d.max_gaussians,
-                    medium_start=medium_start_iteration(cfg.iterations, cfg.medium.start_fraction) if medium else None
-                    ).to_json()
+                    medium_start=medium_start, coarse_until=coarse, coarse_width=small.width if coarse else 0,
+                    coarse_height=small.height if coarse else 0).to_json()
 
 
 PROBE_SHARE = 0.1  # of the train stage's progress that the mode probe reports (mode auto)

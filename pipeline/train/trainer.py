@@ -28,7 +28,7 @@ from pipeline.config import TrainConfig, from_dict, to_dict
 from pipeline.job.layout import CHECKPOINT_NAME
 from pipeline.medium.term import MediumTerm
 from pipeline.profiling import section
-from pipeline.scene.records import Scene, View
+from pipeline.scene.records import Scene, View, scaled_view
 from pipeline.splat.densify import Densifier
 from pipeline.splat.gaussians import GAUSSIAN_KEYS
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
@@ -36,6 +36,7 @@ from pipeline.train.hooks import Hook, ProgressFn, checkpoint_hook, eval_hook, l
 from pipeline.train.image_losses import photometric_losses
 from pipeline.train.jit import maybe_compiled, should_compile
 from pipeline.train.render import RenderOutput, ViewOutputs, render_gaussians, render_outputs, view_tensors
+from pipeline.train.schedule import coarse_iterations
 from pipeline.train.setup import (
     ImageLike,
     active_sh_degree,
@@ -45,6 +46,7 @@ from pipeline.train.setup import (
     prepare_images,
     rendered_sh_degree,
     scene_extent,
+    shrink_image,
 )
 
 log = logging.getLogger(__name__)
@@ -126,6 +128,13 @@ class Trainer:
             # the water is on, an uncovered pixel shows the veil, and a reset scene is not brought back.
             self.densifier.stop_resets_at(self.medium.start - RESET_RECOVERY_REFINES * cfg.densify.refine_every)
         self.cameras = [view_tensors(v, self.device) for v in self.views]  # (viewmat [4,4], K [3,3])
+        # The coarse start (TrainConfig.coarse_fraction): iterations 1..coarse_until render the views shrunk
+        # coarse_downscale times against the targets area-averaged to that size, with the eager losses (a
+        # compiled graph per size would cost a compile for a phase this cheap)
+        self.coarse_until = coarse_iterations(cfg.iterations, cfg.coarse_fraction,
+                                              self.medium.start if self.medium is not None else None)
+        self.coarse_views = [scaled_view(v, cfg.coarse_downscale) for v in self.views] if self.coarse_until else []
+        self.coarse_cameras = [view_tensors(v, self.device) for v in self.coarse_views]
         self.iteration = 0  # iterations completed
         self.elapsed_s = 0.0
         self.history: list[dict[str, float]] = []
@@ -138,9 +147,13 @@ class Trainer:
             self._view_queue = torch.randperm(len(self.views), generator=self._view_gen).tolist()
         return self._view_queue.pop()
 
-    def render(self, i: int, sh_degree: int, render_mode: str = "RGB") -> RenderOutput:
-        viewmat, K = self.cameras[i]
-        cam = self.views[i].camera
+    def coarse(self, iteration: int) -> bool:
+        """Whether ``iteration`` trains at the coarse size (the coarse start)."""
+        return iteration <= self.coarse_until
+
+    def render(self, i: int, sh_degree: int, render_mode: str = "RGB", coarse: bool = False) -> RenderOutput:
+        viewmat, K = (self.coarse_cameras if coarse else self.cameras)[i]
+        cam = (self.coarse_views if coarse else self.views)[i].camera
         return render_gaussians(self.gaussians, viewmat, K, cam.width, cam.height, sh_degree=sh_degree,
                                 background=self.background, backend=self.cfg.backend,
                                 render_mode=render_mode)  # type: ignore[arg-type]  # fmt: skip
@@ -153,6 +166,10 @@ class Trainer:
         if self.medium is not None and self.medium_on(self.iteration + 1):
             assert out.depth is not None
             return self.medium.losses(i, out.image, out.alpha, out.depth, self.targets[i])
+        if self.coarse(self.iteration + 1):
+            h, w = out.image.shape[:2]
+            with section("losses: photometric fwd"):
+                return photometric_losses(out.image, shrink_image(self.targets[i], h, w), self.cfg.ssim_weight)
         with section("losses: photometric fwd"):
             return self._photometric(out.image, self.targets[i], self.cfg.ssim_weight)
 
@@ -171,7 +188,7 @@ class Trainer:
         self.optimizers["means"].param_groups[0]["lr"] = means_lr(self.cfg, self.extent, it)
         i, sh_degree = self.next_view(), min(active_sh_degree(self.cfg, it), self.max_sh_degree)
         with section("render"):
-            out = self.render(i, sh_degree, "RGB+ED" if self.medium_on(it) else "RGB")
+            out = self.render(i, sh_degree, "RGB+ED" if self.medium_on(it) else "RGB", self.coarse(it))
         with section("densify"):
             self.densifier.pre_backward(self.gaussians, self.optimizers, it, out.info)
         with section("losses"):

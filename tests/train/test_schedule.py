@@ -68,13 +68,14 @@ def test_the_report_block_states_the_rule_and_its_numbers():
                      "rule": "iterations = preset x clamp((views / 24) ^ 0.5, 1, 6)", "factor": 2.5,
                      "iterations": 7500, "explicit_iterations": False, "passes": 57.25, "refine_every": 100,
                      "refine_start": 125, "refine_stop": 5625,  # medium mode: x1.5, as the trainer runs it
-                     "reset_every": 1000, "max_gaussians": 625_000, "medium_start": 2500}
+                     "reset_every": 1000, "max_gaussians": 625_000, "medium_start": 2500,
+                     "coarse_until": 2500, "coarse_width": 160, "coarse_height": 120}  # fast: the first third
     schema = json.loads(SCHEMA_FILE.read_text())["properties"]["schedule"]
     jsonschema.validate(block, schema)
     jsonschema.validate(None, schema)  # jobs trained before the rule
     html = _schedule(block)
     assert "7500 iterations" in html and "57.2 passes" in html and "625000" in html
-    assert "iteration 2500" in html
+    assert "iteration 2500" in html and "Iterations 1-2500 trained at 160x120" in html
     three = job_schedule(replace(cfg, mode="3dgs"), 150, train_views, explicit=True)
     assert three["refine_stop"] == 3750 and three["medium_start"] is None and three["explicit_iterations"]
     assert "set by --iterations" in _schedule(three)
