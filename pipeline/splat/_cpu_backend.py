@@ -202,7 +202,7 @@ class _Raster(torch.autograd.Function):
         v_feat = torch.zeros(C, N, groups * NF, dtype=f32)
         v_feat_g = np.empty((C, N, NF), np.float32)
         for g in range(groups):
-            acc = np.zeros((BWD_SLICES, items.shape[0], rk.GROW + NF), np.float32)
+            acc = np.empty((BWD_SLICES, items.shape[0], rk.GROW + NF), np.float32)  # raster_bwd zeroes it
             v_alpha_g = v_alpha if g == 0 else torch.zeros_like(v_alpha)
             with _dynamic_schedule():
                 rk.raster_bwd(group_rows[g], tile_offsets, tile_end, masks, pair_item, width, height,

@@ -134,38 +134,50 @@ def bin_and_pack(means2d, conics, opacities, thresholds, features, radii, depth_
     # No top-level np.zeros here: in a parallel kernel numba makes an array expression a parfor, and under the
     # backend's dynamic schedule (chunk size 1) it hands out one element per scheduling step (~0.25 ms per 1,200
     # elements: 2.3 of the binning's ~11 ms went to zeroing ``hist`` and ``tile_offsets``). Plain loops instead.
-    n_vis = np.empty(C, np.int64)
-    for c in prange(C):
+    # Visible Gaussians are counted and gathered in blocks of ``block`` (parallel over camera x block, so one
+    # camera's 100k Gaussians do not run on one thread), then sorted per camera.
+    block = 8192
+    nb = (N + block - 1) // block
+    n_blk = np.empty((C, nb + 1), np.int64)  # per camera: visible count of each block, then their prefix
+    for q in prange(C * nb):
+        c, b = q // nb, q % nb
         k = 0
-        for n in range(N):
+        for n in range(b * block, min(N, (b + 1) * block)):
             if radii[c, n, 0] > 0 or radii[c, n, 1] > 0:
                 k += 1
-        n_vis[c] = k
+        n_blk[c, b + 1] = k
     cam_start = np.empty(C + 1, np.int64)
     cam_start[0] = 0
     for c in range(C):
-        cam_start[c + 1] = cam_start[c] + n_vis[c]
+        n_blk[c, 0] = 0
+        for b in range(nb):
+            n_blk[c, b + 1] += n_blk[c, b]
+        cam_start[c + 1] = cam_start[c] + n_blk[c, nb]
     M = cam_start[C]
+    vis_idx = np.empty(M, np.int64)
+    vis_key = np.empty(M, np.float64)
+    for q in prange(C * nb):
+        c, b = q // nb, q % nb
+        k = cam_start[c] + n_blk[c, b]
+        for n in range(b * block, min(N, (b + 1) * block)):
+            if radii[c, n, 0] > 0 or radii[c, n, 1] > 0:
+                vis_idx[k] = n
+                vis_key[k] = depth_keys[c, n]
+                k += 1
     items = np.empty(M, np.int64)
     for c in range(C):
-        idx = np.empty(n_vis[c], np.int64)
-        keys = np.empty(n_vis[c], np.float64)
-        k = 0
-        for n in range(N):
-            if radii[c, n, 0] > 0 or radii[c, n, 1] > 0:
-                idx[k] = n
-                keys[k] = depth_keys[c, n]
-                k += 1
+        idx = vis_idx[cam_start[c] : cam_start[c + 1]]
+        keys = vis_key[cam_start[c] : cam_start[c + 1]].copy()
         order = argsort_stable(keys)
-        for i in range(n_vis[c]):
+        for i in range(cam_start[c + 1] - cam_start[c]):
             items[cam_start[c] + i] = c * N + idx[order[i]]
     # 2. per item: packed parameter row, and the tile rectangle holding the pixel centres inside
     #    [m - r, m + r] (the reference's pixel box)
     item_rows = np.empty((M, ROW + F), np.float32)
     rect = np.empty((M, 4), np.int64)  # tx0, tx1, ty0, ty1 (inclusive; empty when tx1 < tx0)
-    block = 1024  # items per parallel work item (the backend schedules dynamically, one block at a time)
-    for blk in prange((M + block - 1) // block):
-        for i in range(blk * block, min(M, (blk + 1) * block)):
+    iblock = 1024  # items per parallel work item (the backend schedules dynamically, one block at a time)
+    for blk in prange((M + iblock - 1) // iblock):
+        for i in range(blk * iblock, min(M, (blk + 1) * iblock)):
             c, n = items[i] // N, items[i] % N
             item_rows[i, 0] = means2d[c, n, 0]
             item_rows[i, 1] = means2d[c, n, 1]
@@ -359,9 +371,9 @@ def raster_bwd(rows, tile_offsets, tile_end, masks, pair_item, width, height, ba
     """Backward of ``raster_fwd`` (3DGS's back-to-front recursion), one fused SIMD pass per pair.
 
     v_out [C, H, W, 4] = dL/d(rendered features), v_alpha [C, H, W] = dL/d(rendered alpha) ->
-    acc [S, M, 8 + 4] (pre-zeroed): slice s gets the gradient of every pair of tiles s, s + S, ..., added to
-    the pair's item row in tile order by the one thread that runs it (no races, no atomics, the same sums
-    whatever the schedule; ``reduce_items`` sums the slices).
+    acc [S, M, 8 + 4] (zeroed here, each slice by its thread): slice s gets the gradient of every pair of tiles
+    s, s + S, ..., added to the pair's item row in tile order by the one thread that runs it (no races, no
+    atomics, the same sums whatever the schedule; ``reduce_items`` sums the slices).
 
     For pair i at a pixel, with T_i its transmittance in front and B the sum of w_j f_j behind it:
       dL/dalpha_i = sum_f v_f (f_i T_i - B_f / (1 - alpha_i)) + T_final / (1 - alpha_i) (v_alpha - v . bg)
@@ -372,6 +384,9 @@ def raster_bwd(rows, tile_offsets, tile_end, masks, pair_item, width, height, ba
     n_tiles, n_slices = tile_offsets.shape[0] - 1, acc.shape[0]
     # slice k takes tiles k, k + n_slices, ... in order: the sums do not depend on which thread ran what
     for k in prange(n_slices):
+        for i in range(acc.shape[1]):  # each slice zeroes its own rows (the caller passes np.empty)
+            for q in range(GROW + NF):
+                acc[k, i, q] = _F0
         for t in range(k, n_tiles, n_slices):
             start, end = tile_offsets[t], tile_end[t]
             if end == start:

@@ -430,7 +430,7 @@ def test_raster_bwd_matches_autograd_of_twin(rk, seed):
 
     # kernel: the twin's saved state in, per-item gradients out
     masks, tile_end = _expected_masks(composited, items, offsets, pair_item)
-    acc = np.zeros((BWD_SLICES, len(items), rk.GROW + rk.NF), np.float32)
+    acc = np.full((BWD_SLICES, len(items), rk.GROW + rk.NF), np.nan, np.float32)  # the kernel zeroes it
     rk.raster_bwd(rows, offsets, tile_end, masks, pair_item, W, H, _np(s.backgrounds), _np(t_final), _np(v_out),
                   _np(v_alpha), acc)  # fmt: skip
     v_means2d, v_conics = np.zeros((C, N, 2), np.float32), np.zeros((C, N, 3), np.float32)
