@@ -166,12 +166,11 @@ class Trainer:
         if self.medium is not None and self.medium_on(self.iteration + 1):
             assert out.depth is not None
             return self.medium.losses(i, out.image, out.alpha, out.depth, self.targets[i])
-        if self.coarse(self.iteration + 1):
-            h, w = out.image.shape[:2]
-            with section("losses: photometric fwd"):
-                return photometric_losses(out.image, shrink_image(self.targets[i], h, w), self.cfg.ssim_weight)
+        losses, target = self._photometric, self.targets[i]
+        if self.coarse(self.iteration + 1):  # the shrunk render against the target area-averaged to its size
+            losses, target = photometric_losses, shrink_image(target, *out.image.shape[:2])
         with section("losses: photometric fwd"):
-            return self._photometric(out.image, self.targets[i], self.cfg.ssim_weight)
+            return losses(out.image, target, self.cfg.ssim_weight)
 
     def outputs(self, view: View) -> ViewOutputs:
         """Everything the model renders for ``view`` (J, I, A, B, depth, alpha), through the medium once it is on."""
