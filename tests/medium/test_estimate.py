@@ -131,3 +131,31 @@ def test_no_range_information_is_not_determined_but_prior():
     est = fit_medium(obs, (1.6, 0.6, 0.5))
     assert est is not None
     assert "prior" in est.uncertainty["beta_D"]["source"]
+
+
+def _torch_twin_inputs(seed=3):
+    obs = _narrow(WATER_PRESETS["turbid"], 0.5, 5.0, 0.02, seed=seed)
+    pid, inv = np.unique(obs.point, return_inverse=True)
+    return inv, len(pid), obs.range, obs.colour[:, 0]
+
+
+@pytest.mark.parametrize("theta", [(-1.3, -2.9, -4.4), (0.5, 0.2, -1.0), (-0.2, -0.5, 1.5)])
+def test_closed_form_gradient_matches_the_autograd_twin(theta):
+    """The fit's misfit and gradient against ``_channel_loss`` under autograd (which differentiates through the
+    eliminated J too); the points include clamped J (black and saturated surfaces)."""
+    import torch
+
+    from pipeline.medium.estimate import _channel_loss, _channel_loss_grad
+
+    inv, n, r, I = _torch_twin_inputs()  # noqa: E741
+    I = I.copy()  # noqa: E741
+    I[inv < 40] = 0.0  # black points: J clamps at 0
+    I[(inv >= 40) & (inv < 80)] = 1.0  # saturated: J clamps at 1 where the water dims less
+    th = np.asarray(theta, dtype=np.float64)
+    loss, grad = _channel_loss_grad(th, inv, n, r, I)
+    t = torch.tensor(th, requires_grad=True)
+    ref, J = _channel_loss(t, torch.as_tensor(inv), n, torch.as_tensor(r), torch.as_tensor(I))
+    (ref_grad,) = torch.autograd.grad(ref, t)
+    assert ((J == 0) | (J == 1)).sum() >= 40  # clamps are exercised
+    np.testing.assert_allclose(loss, float(ref.detach()), rtol=1e-12)
+    np.testing.assert_allclose(grad, ref_grad.numpy(), rtol=1e-8, atol=1e-14)
