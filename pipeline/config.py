@@ -57,7 +57,10 @@ class SfmConfig:
     max_num_features: int = 8192
     camera_model: str = "SIMPLE_RADIAL"  # model refined by bundle adjustment before undistortion
     single_camera: bool = True  # one shared camera for the whole set (one ROV camera)
-    num_threads: int = 1  # one thread: SfM repeats bit for bit (2 threads moved the model run to run)
+    num_threads: int = 1  # matching and mapping on one thread: SfM repeats bit for bit (2 threads moved the model)
+    # Feature extraction and undistortion treat each image alone (ids are assigned before, in name order), so
+    # their threads cannot change the result (the model's files compared byte for byte): -1 = all cores.
+    image_threads: int = -1
     seed: int = 0
     min_registered: int = 3  # fewer registered images than this is an error
 

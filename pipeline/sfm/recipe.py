@@ -19,7 +19,8 @@ process for ALIKED / LightGlue (no ONNX), so the extractor type is never configu
 Reproducibility: seeded, and image ids follow the sorted names, so features and matches are identical run to
 run. With ``num_threads=1`` (the default) the whole output is bit-identical; with 2 threads the model
 moved run to run (the mapper alone on one thread was not enough), and training amplified the difference. One
-thread costs about a quarter more SfM time (the measurements: docs/DECISIONS.md, "SfM").
+thread costs about a quarter more SfM time (the measurements: docs/DECISIONS.md, "SfM"). Feature extraction and
+undistortion work on one image at a time and use ``image_threads`` (all cores): the same bytes on any count.
 """
 
 from __future__ import annotations
@@ -218,7 +219,7 @@ def run_sfm(
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = cfg.camera_model
         ext = pycolmap.FeatureExtractionOptions()
-        ext.num_threads = cfg.num_threads
+        ext.num_threads = cfg.image_threads
         ext.max_image_size = cfg.max_image_size
         ext.sift.max_num_features = cfg.max_num_features
         attempt = _Attempt(src_dir, names, camera_mode, reader, ext, matcher, cfg, cancellation_token, skipped)
@@ -294,8 +295,10 @@ def _check_config(cfg: SfmConfig) -> None:
         raise ValueError(
             f"SfmConfig.camera_model must be one of {', '.join(CAMERA_MODELS)}; got {cfg.camera_model!r}"
         )
-    if cfg.num_threads == 0 or cfg.num_threads < -1:
-        raise ValueError(f"SfmConfig.num_threads must be >= 1 or -1 (all cores); got {cfg.num_threads}")
+    for name in ("num_threads", "image_threads"):
+        n = getattr(cfg, name)
+        if n == 0 or n < -1:
+            raise ValueError(f"SfmConfig.{name} must be >= 1 or -1 (all cores); got {n}")
     if cfg.sequential_overlap < 1 or cfg.max_image_size < 64 or cfg.max_num_features < 100:
         raise ValueError(f"SfmConfig values out of range: {cfg}")
 
@@ -566,7 +569,7 @@ def _undistort(model_dir: Path, image_dir: Path, out: Path, tmp: Path, cfg: SfmC
     """PINHOLE undistortion into ``out/images`` and ``out/sparse/0`` (MVS leftovers dropped)."""
     import pycolmap
 
-    pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), num_threads=cfg.num_threads,
+    pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), num_threads=cfg.image_threads,
                               cancellation_token=token)  # fmt: skip
     (out / "sparse").mkdir(parents=True, exist_ok=True)
     shutil.move(str(tmp / "images"), str(out / "images"))

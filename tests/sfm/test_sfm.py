@@ -55,7 +55,8 @@ def test_choose_matcher_rule() -> None:
 
 
 def test_invalid_config_and_output_clash_fail_before_any_work(tmp_path: Path) -> None:
-    bad_cfgs = [SfmConfig(matcher="aliked"), SfmConfig(camera_model="EQUIRECTANGULAR"), SfmConfig(num_threads=0)]  # type: ignore[arg-type]
+    bad_cfgs = [SfmConfig(matcher="aliked"), SfmConfig(camera_model="EQUIRECTANGULAR"), SfmConfig(num_threads=0),
+                SfmConfig(image_threads=-2)]  # type: ignore[arg-type]
     for bad in bad_cfgs:
         with pytest.raises(ValueError):
             run_sfm(tmp_path, tmp_path / "out", bad)
@@ -176,6 +177,20 @@ def test_ruie_frames_register(tmp_path: Path, record_property: pytest.RecordProp
     record_property("align", {k: round(v, 5) for k, v in m.items()})
     # sparse_ref is another self-calibrated run on the same frames, not ground truth: loose bounds.
     assert m["n_common"] >= 17 and m["rot_err_deg_mean"] < 2.0 and m["center_err_rel_max"] < 0.02
+
+
+@pytest.mark.slow
+def test_image_threads_do_not_change_a_byte(tmp_path: Path) -> None:
+    """Extraction and undistortion on 2 threads (SfmConfig.image_threads) against 1: the model files and the
+    undistorted images are the same bytes (matching and mapping stay on one thread)."""
+    src = _ruie_frames(tmp_path / "src", sorted(p.name for p in (RUIE / "images").iterdir())[:8])
+    outs = []
+    for n in (1, 2):
+        run_sfm(src, tmp_path / f"out{n}", SfmConfig(num_threads=1, image_threads=n, seed=0))
+        outs.append({p.relative_to(tmp_path / f"out{n}"): p.read_bytes()
+                     for p in sorted((tmp_path / f"out{n}").glob("**/*")) if p.is_file() and p.suffix != ".db"})
+    assert any(k.suffix == ".bin" for k in outs[0]) and any(k.parts[0] == "images" for k in outs[0])
+    assert outs[0] == outs[1]
 
 
 @pytest.mark.slow
