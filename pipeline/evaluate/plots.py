@@ -11,6 +11,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from pipeline.scene.images import PNG_COMPRESSION_LEVEL
+
 
 def _pyplot():
     import matplotlib
@@ -54,7 +56,8 @@ def image_png(img: np.ndarray, cmap: str | None = None, vmin: float | None = Non
     elif img.ndim != 2:
         raise ValueError(f"image_png expects [H, W, 3] or [H, W], got {img.shape}")
     buf = io.BytesIO()
-    mpimg.imsave(buf, img, format="png", cmap=cmap, vmin=vmin, vmax=vmax)
+    mpimg.imsave(buf, img, format="png", cmap=cmap, vmin=vmin, vmax=vmax,
+                 pil_kwargs={"compress_level": PNG_COMPRESSION_LEVEL})
     return buf.getvalue()
 
 

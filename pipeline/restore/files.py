@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
+from pipeline.scene.images import PNG_COMPRESSION_LEVEL
+
 JPEG_QUALITY = 95
 # attributes that describe the source's encoding, not the picture: never copied
 _DROP = ("oiio:BitsPerSample", "oiio:UnassociatedAlpha", "Compression", "CompressionQuality", "oiio:Gamma",
@@ -70,6 +72,8 @@ def output_spec(src: oiio.ImageSpec | None, width: int, height: int, nchannels: 
     if Path(path).suffix.lower() in (".jpg", ".jpeg"):
         spec.attribute("Compression", f"jpeg:{JPEG_QUALITY}")
         spec.attribute("jpeg:subsampling", "4:4:4")  # restored detail is amplified noise too: no chroma halving
+    elif Path(path).suffix.lower() == ".png":
+        spec.attribute("png:compressionLevel", PNG_COMPRESSION_LEVEL)
     spec.attribute("Orientation", 1)
     return spec
 
