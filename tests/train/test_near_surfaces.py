@@ -12,6 +12,21 @@ covered pixels rendered nearer than 0.8 of the true depth, mean over views / wor
 cache states (freshly compiled rasterizer kernels train a slightly different model than cached ones: README):
 with the near side 0.7 % / 8.0 % (cached), 3.6 % / 21.8 % (fresh, as on CI); switched off (``near`` 1e9)
 14.5 % / 53.9 % (cached), 10.1 % / 40.7 % (fresh). About 2 min on a loaded 2-core machine.
+
+Why the cut is now 0.7 of the true depth, not 0.8 (session 24): the band lets a surface lie at 1/``NEAR_BAND``
+= 0.91 of the points' range map, and that map is itself 0.89-1.13 of the true range, so a surface at ~0.81 of
+the truth is one the loss permits. With the near side on, the oblique views' foregrounds spread over 0.8-0.95,
+and the share under 0.8 swung with float rounding: 1.4 % / 6.1 % (cached kernels) and 2.5 % / 10.3 % (fresh)
+on one machine, 6.7 % / 27 % in a CI run of the same code (which failed this test's old floors, 6 % / 32 %), and
+6.4 % / 24 % with freshly compiled kernels for a generic CPU (``NUMBA_CPU_NAME=generic``: other machine code,
+other rounding), which reproduces the CI run. The failure guarded against lies well in front: with the near
+side off, 17-41 % of an oblique view's pixels are nearer than 0.5 of the truth.
+
+Under 0.7 (mean / worst view), seed 0: near side on 0.06 % / 0.6 % (cached), 0.6 % / 2.2 % (fresh), 4.0 % /
+18.0 % (fresh, generic CPU: the worst state seen; 8 % of one view still nearer than 0.5); seeds 1-3 cached at
+most 0.3 % / 3.5 %. Near side off: 17.0 % / 66.6 % (cached), 18.9 % / 68.9 % (fresh, generic CPU). The floors
+sit about 2x from both. That the near side holds the foreground only loosely in some float states is a
+weakness of the loss, recorded in docs/DECISIONS.md ("A surface in front of the seabed").
 """
 
 from __future__ import annotations
@@ -35,8 +50,9 @@ pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not default_textures_dir().is_dir(),
                                  reason="shared/data/textures/euvp-gtr-a is not beside the repository")]
 
-NEAR = 0.8  # a covered pixel nearer than this share of the true depth counts as drawn in front of the seabed
-MEAN_SHARE, WORST_SHARE = 0.06, 0.32  # measured up to 0.036 and 0.218; without the near side >= 0.101 and 0.407
+NEAR = 0.7  # a covered pixel nearer than this share of the true depth counts as drawn in front of the seabed
+#            (outside what the near band permits: module docstring)
+MEAN_SHARE, WORST_SHARE = 0.09, 0.4  # measured up to 0.040 and 0.180; without the near side >= 0.170 and 0.666
 
 
 def test_turbid_water_draws_no_surface_in_front_of_the_seabed(tmp_path, record_property):
@@ -49,7 +65,7 @@ def test_turbid_water_draws_no_surface_in_front_of_the_seabed(tmp_path, record_p
     opts = JobOptions(source=str(root / "images"), iterations=1500, mode="homogeneous", colour_space="linear")
     cfg = resolve_train_config(opts, W, None, None, len(scene.views))
     res = train(ts, load_training_images(ts.views, 1, "linear"), cfg)
-    shares = []
+    shares, edge = [], []
     for v in ts.views:
         with torch.no_grad():
             out = render_view(res.gaussians, v, sh_degree=0, render_mode="RGB+ED")
@@ -58,8 +74,9 @@ def test_turbid_water_draws_no_surface_in_front_of_the_seabed(tmp_path, record_p
         seen = (alpha > 0.5) & (truth < 50)  # covered pixels on the seabed
         assert seen.mean() > 0.5, (v.name, float(seen.mean()))  # the scene is there (oblique views: its near half)
         shares.append(float(np.mean(z[seen] < NEAR * truth[seen])))
+        edge.append(float(np.mean(z[seen] < 0.8 * truth[seen])))  # at the band's own tolerance: recorded only
     mean, worst = float(np.mean(shares)), max(shares)
     result = {"mean": round(mean, 4), "worst": round(worst, 4), "shares": [round(x, 3) for x in shares],
-              "gaussians": int(res.gaussians["means"].shape[0])}
+              "under_0.8": [round(x, 3) for x in edge], "gaussians": int(res.gaussians["means"].shape[0])}
     record_property("result", result)
     assert mean <= MEAN_SHARE and worst <= WORST_SHARE, result
