@@ -173,8 +173,8 @@ def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, fitted: Tensor 
     a held bound, not a measurement), and that side weighs k = ``near_weight`` times more: at weight 1 the
     foreground of oblique views still lay at 0.5-0.8 of the range in some float states (machine code of another
     CPU, freshly compiled kernels), the linear hinge losing to the photometric pull (docs/DECISIONS.md, "The near
-    side holds loosely in some float states"). α is detached: the way out must not be to uncover the pixel,
-    which is the shortcut this term closes."""
+    side holds loosely in some float states"). α is detached: the way out must not be to uncover the pixel, which is the
+    shortcut this term closes."""
     if range_map.numel() == 0:
         return D.new_zeros(())
     grids = range_map.log() if fitted is None else torch.cat([range_map.log(), fitted.to(range_map.dtype)], 1)
