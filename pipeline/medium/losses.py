@@ -149,12 +149,11 @@ def point_depth_loss(D: Tensor, pixels: Tensor, ranges: Tensor) -> Tensor:
 
 DEPTH_BAND = 3.0  # depth_band_loss lets the surface lie up to this factor beyond its neighbourhood's range
 NEAR_BAND = 1.1  # ... and, where the points' plane fit holds, up to this factor nearer than it
-NEAR_WEIGHT = 4.0  # ... and a surface nearer than that costs this many times more than one as far beyond the band
 
 
 def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, fitted: Tensor | None = None,
-                    band: float = DEPTH_BAND, near: float = NEAR_BAND, near_weight: float = NEAR_WEIGHT) -> Tensor:
-    """Mean α·(max(0, log D − log R − log ``band``) + k·f·max(0, log R − log D − log ``near``)) over all pixels, R
+                    band: float = DEPTH_BAND, near: float = NEAR_BAND) -> Tensor:
+    """Mean α·(max(0, log D − log R − log ``band``) + f·max(0, log R − log D − log ``near``)) over all pixels, R
     the view's point range map and f its plane fit's mask (1 where the fit found the surface), both upsampled to
     the image. D, alpha [N,1,H,W], range_map and fitted [N,1,h,w] (:func:`pipeline.medium.term.point_range_map`;
     ``fitted`` None: the far side only) → []
@@ -170,10 +169,7 @@ def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, fitted: Tensor 
     the points' plane fit was within 0.89-1.13 of the true range everywhere; the restored view kept grey veil
     patches there (docs/DECISIONS.md, "A surface in front of the seabed"). So no covered pixel may lie more than
     ``near`` times nearer than the fit either, where there is a fit (where it ran out to the horizon the range is
-    a held bound, not a measurement), and that side weighs k = ``near_weight`` times more: at weight 1 the
-    foreground of oblique views still lay at 0.5-0.8 of the range in some float states (machine code of another
-    CPU, freshly compiled kernels), the linear hinge losing to the photometric pull (docs/DECISIONS.md, "The near
-    side holds loosely in some float states"). α is detached: the way out must not be to uncover the pixel, which is the
+    a held bound, not a measurement). α is detached: the way out must not be to uncover the pixel, which is the
     shortcut this term closes."""
     if range_map.numel() == 0:
         return D.new_zeros(())
@@ -183,7 +179,7 @@ def depth_band_loss(D: Tensor, alpha: Tensor, range_map: Tensor, fitted: Tensor 
     logD = D.clamp(min=1e-6).log()
     excess = (logD - ref - math.log(band)).clamp(min=0)
     if fitted is not None:
-        excess = excess + near_weight * up[:, 1:] * (ref - logD - math.log(near)).clamp(min=0)
+        excess = excess + up[:, 1:] * (ref - logD - math.log(near)).clamp(min=0)
     return (alpha.detach() * excess).mean()
 
 

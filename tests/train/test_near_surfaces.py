@@ -22,12 +22,11 @@ on one machine, 6.7 % / 27 % in a CI run of the same code (which failed this tes
 other rounding), which reproduces the CI run. The failure guarded against lies well in front: with the near
 side off, 17-41 % of an oblique view's pixels are nearer than 0.5 of the truth.
 
-Under 0.7 (mean / worst view), seed 0, with the near side at weight 1: 0.06 % / 0.6 % (cached), 0.6 % / 2.2 %
-(fresh), 4.0 % / 18.0 % (fresh, generic CPU: 8 % of one view nearer than 0.5); seeds 1-3 cached at most 0.3 % /
-3.5 %. So the near side held the foreground only loosely in some float states, and it now weighs 4x
-(``NEAR_WEIGHT``): 0.02 % / 0.28 % (cached), 0.00 % / 0.01 % (fresh), 0.00 % / 0.03 % (fresh, generic CPU).
-Near side off: 17.0 % / 66.6 % (cached), 18.9 % / 68.9 % (fresh, generic CPU). The floors fail the weight-1
-loss's worst state as well as no near side, with a margin of 35x over what the kept loss gave.
+Under 0.7 (mean / worst view), seed 0: near side on 0.06 % / 0.6 % (cached), 0.6 % / 2.2 % (fresh), 4.0 % /
+18.0 % (fresh, generic CPU: the worst state seen; 8 % of one view still nearer than 0.5); seeds 1-3 cached at
+most 0.3 % / 3.5 %. Near side off: 17.0 % / 66.6 % (cached), 18.9 % / 68.9 % (fresh, generic CPU). The floors
+sit about 2x from both. That the near side holds the foreground only loosely in some float states is a
+weakness of the loss, recorded in docs/DECISIONS.md ("A surface in front of the seabed").
 """
 
 from __future__ import annotations
@@ -53,7 +52,7 @@ pytestmark = [pytest.mark.slow,
 
 NEAR = 0.7  # a covered pixel nearer than this share of the true depth counts as drawn in front of the seabed
 #            (outside what the near band permits: module docstring)
-MEAN_SHARE, WORST_SHARE = 0.02, 0.1  # measured up to 0.0002 and 0.0028 (weight 1: 0.040 and 0.180; off: 0.170, 0.666)
+MEAN_SHARE, WORST_SHARE = 0.09, 0.4  # measured up to 0.040 and 0.180; without the near side >= 0.170 and 0.666
 
 
 def test_turbid_water_draws_no_surface_in_front_of_the_seabed(tmp_path, record_property):
