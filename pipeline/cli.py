@@ -294,8 +294,10 @@ def cmd_train_classifier(args: argparse.Namespace) -> int:
 def cmd_warmup(args: argparse.Namespace) -> int:
     from pipeline.restore.warmup import compile_restore_kernels
     from pipeline.splat.warmup import compile_kernels
+    from pipeline.train.ssim_cpu import compile_ssim_kernels
 
-    print(json.dumps({"rasterizer": compile_kernels(), "restore": compile_restore_kernels()}))
+    print(json.dumps({"rasterizer": compile_kernels(), "ssim": compile_ssim_kernels(),
+                      "restore": compile_restore_kernels()}))
     return 0
 
 
