@@ -1,6 +1,7 @@
 """The ``cpu`` backend: numba kernels with hand-written backward, wrapped in two autograd Functions.
 
-    _Project  (means, quats, scales, [SH coeffs]) -> means2d, conics, depths, [SH colours]   (+ radii, sort keys)
+    _Project  (means, quats, scales, [SH DC band, higher bands]) -> means2d, conics, depths, [SH colours]
+                                                                                  (+ radii, sort keys)
     _Raster   (means2d, conics, opacities, features, backgrounds) -> image, alpha
 
 The split mirrors gsplat, so ``means2d`` is a real node of the graph and ``info["means2d"].grad`` is filled by
@@ -81,10 +82,10 @@ def _np(t: Tensor) -> np.ndarray:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, coeffs, viewmats, Ks, width, height, sh_degree, eps2d,
+    def forward(ctx, means, quats, scales, opacities, sh0, shN, viewmats, Ks, width, height, sh_degree, eps2d,
                 near_plane, far_plane):  # fmt: skip
-        # means [N, 3], quats [N, 4], scales [N, 3], opacities [N], coeffs [N, K, 3] (K = 0 without SH),
-        # viewmats [C, 4, 4], Ks [C, 3, 3]
+        # means [N, 3], quats [N, 4], scales [N, 3], opacities [N], sh0 [N, 1, 3] and shN [N, K - 1, 3] the SH
+        # bands as the Gaussians keep them (both [N, 0, 3] without SH), viewmats [C, 4, 4], Ks [C, 3, 3]
         pk, _ = _kernels()
         C, N = viewmats.shape[0], means.shape[0]
         f32 = dict(dtype=torch.float32)
@@ -96,11 +97,11 @@ class _Project(torch.autograd.Function):
         colors = torch.empty(C, N if deg >= 0 else 0, 3, **f32)
         with _dynamic_schedule(), section("raster: project fwd"):
             pk.project_fwd(
-                _np(means), _np(quats), _np(scales), _np(opacities), _np(coeffs), deg, _np(viewmats), _np(Ks),
+                _np(means), _np(quats), _np(scales), _np(opacities), _np(sh0), _np(shN), deg, _np(viewmats), _np(Ks),
                 width, height, eps2d, near_plane, far_plane,
                 means2d.numpy(), conics.numpy(), depths.numpy(), radii.numpy(), keys.numpy(), colors.numpy(),
             )  # fmt: skip
-        ctx.save_for_backward(means, quats, scales, coeffs, viewmats, Ks, radii)
+        ctx.save_for_backward(means, quats, scales, sh0, shN, viewmats, Ks, radii)
         ctx.cfg = (width, height, deg, eps2d)
         ctx.mark_non_differentiable(radii, keys)
         return means2d, conics, depths, colors, radii, keys
@@ -108,7 +109,7 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_means2d, v_conics, v_depths, v_colors, _v_radii, _v_keys):
         pk, _ = _kernels()
-        means, quats, scales, coeffs, viewmats, Ks, radii = ctx.saved_tensors
+        means, quats, scales, sh0, shN, viewmats, Ks, radii = ctx.saved_tensors
         width, height, deg, eps2d = ctx.cfg
         C, N = viewmats.shape[0], means.shape[0]
 
@@ -117,15 +118,17 @@ class _Project(torch.autograd.Function):
 
         f32 = dict(dtype=torch.float32)
         v_means, v_quats, v_scales = torch.empty(N, 3, **f32), torch.empty(N, 4, **f32), torch.empty(N, 3, **f32)
-        v_coeffs = torch.empty_like(coeffs)
+        v_sh0, v_shN = torch.empty(sh0.shape, **f32), torch.empty(shN.shape, **f32)
         with _dynamic_schedule(), section("raster: project bwd"):
             pk.project_bwd(
-                _np(means), _np(quats), _np(scales), _np(coeffs), deg, _np(viewmats), _np(Ks), width, height, eps2d,
+                _np(means), _np(quats), _np(scales), _np(sh0), _np(shN), deg, _np(viewmats), _np(Ks), width, height,
+                eps2d,
                 _np(radii), grad_or_zeros(v_means2d, (C, N, 2)), grad_or_zeros(v_conics, (C, N, 3)),
                 grad_or_zeros(v_depths, (C, N)), grad_or_zeros(v_colors, (C, N if deg >= 0 else 0, 3)),
-                v_means.numpy(), v_quats.numpy(), v_scales.numpy(), v_coeffs.numpy(),
+                v_means.numpy(), v_quats.numpy(), v_scales.numpy(), v_sh0.numpy(), v_shN.numpy(),
             )  # fmt: skip
-        return (v_means, v_quats, v_scales, None, v_coeffs if deg >= 0 else None) + (None,) * 8
+        sh_grads = (v_sh0, v_shN) if deg >= 0 else (None, None)
+        return (v_means, v_quats, v_scales, None, *sh_grads) + (None,) * 8
 
 
 class _Raster(torch.autograd.Function):
@@ -233,13 +236,14 @@ def render(
     quats: Tensor,  # [N, 4]
     scales: Tensor,  # [N, 3]
     opacities: Tensor,  # [N]
-    colors: Tensor,  # [N, D] or [N, K, 3]
+    colors: Tensor,  # [N, D] or [N, K, 3] (or the DC band [N, 1, 3] with sh_rest)
     viewmats: Tensor,  # [C, 4, 4]
     Ks: Tensor,  # [C, 3, 3]
     width: int,
     height: int,
     *,
     sh_degree: int | None,
+    sh_rest: Tensor | None = None,  # [N, K - 1, 3] the higher SH bands, kept apart from colors' DC band
     backgrounds: Tensor | None,  # [C, F] already matching the rendered features
     with_colors: bool,
     with_depth: bool,
@@ -248,15 +252,21 @@ def render(
     eps2d: float,
     absgrad: bool,
 ) -> tuple[Tensor, Tensor, dict]:
-    """Same contract as ``_torch_ref.render``; float32 throughout (inputs are cast)."""
+    """Same contract as ``_torch_ref.render`` (with ``sh_rest``: its SH coefficients are colors and sh_rest
+    concatenated, which the kernels read apart); float32 throughout (inputs are cast)."""
     f32 = torch.float32
     means, quats, scales, opacities, colors = (t.to(f32) for t in (means, quats, scales, opacities, colors))
     viewmats, Ks = viewmats.to(f32), Ks.to(f32)
     C, N = viewmats.shape[0], means.shape[0]
     use_sh = with_colors and sh_degree is not None
-    coeffs = colors if use_sh else torch.zeros(N, 0, 3, dtype=f32)
+    if not use_sh:
+        sh0 = shN = torch.zeros(N, 0, 3, dtype=f32)
+    elif sh_rest is not None:
+        sh0, shN = colors, sh_rest.to(f32)
+    else:
+        sh0, shN = colors[:, :1], colors[:, 1:]
     means2d, conics, depths, sh_colors, radii, keys = _Project.apply(
-        means, quats, scales, opacities, coeffs, viewmats, Ks, width, height,
+        means, quats, scales, opacities, sh0, shN, viewmats, Ks, width, height,
         sh_degree if use_sh else None, float(eps2d), float(near_plane), float(far_plane),
     )  # fmt: skip
     feats = []

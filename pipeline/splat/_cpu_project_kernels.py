@@ -217,17 +217,30 @@ def _no_gradient(n, radii, v_colors):
     return True
 
 
+@njit(inline="always")
+def _zero_sh(n, v_sh0, v_shN):
+    """Zero Gaussian n's SH gradient rows (v_sh0 [N, 1 or 0, 3], v_shN [N, K - 1, 3])."""
+    for k in range(v_sh0.shape[1]):
+        for ch in range(3):
+            v_sh0[n, k, ch] = 0.0
+    for k in range(v_shN.shape[1]):
+        for ch in range(3):
+            v_shN[n, k, ch] = 0.0
+
+
 _CHUNK = 256  # Gaussians per parallel work item (scratch buffers are allocated once per chunk)
 
 
 @njit(parallel=True, cache=True)
 def project_fwd(
-    means, quats, scales, opacities, coeffs, sh_degree, viewmats, Ks,
+    means, quats, scales, opacities, sh0, shN, sh_degree, viewmats, Ks,
     width, height, eps2d, near_plane, far_plane,
     means2d, conics, depths, radii, depth_keys, colors,
 ):  # fmt: skip
     """Forward: fills means2d [C, N, 2], conics [C, N, 3], depths [C, N], radii [C, N, 2] int32,
-    depth_keys [C, N] float64 (inf when culled), colors [C, N, 3] (only if sh_degree >= 0)."""
+    depth_keys [C, N] float64 (inf when culled), colors [C, N, 3] (only if sh_degree >= 0) from the SH DC band
+    sh0 [N, 1, 3] and the higher bands shN [N, K - 1, 3] (K >= (sh_degree + 1)^2; separate arrays, as the
+    Gaussians keep them, so a step never concatenates them nor splits their gradient)."""
     C, N = depths.shape
     nb = (sh_degree + 1) ** 2
     Wall, tall, intr, lim = _cameras(viewmats, Ks, width, height)
@@ -257,8 +270,9 @@ def project_fwd(
                     _sh_basis(sh_degree, d[0], d[1], d[2], basis)
                     for ch in range(3):
                         acc = 0.0
-                        for k in range(nb):
-                            acc += basis[k] * coeffs[n, k, ch]
+                        acc += basis[0] * sh0[n, 0, ch]
+                        for k in range(1, nb):
+                            acc += basis[k] * shN[n, k - 1, ch]
                         colors[c, n, ch] = max(acc + 0.5, 0.0)
                 z = mc[2]
                 if not (z >= near_plane and z <= far_plane) or op < ALPHA_MIN:
@@ -312,12 +326,12 @@ def project_fwd(
 
 @njit(parallel=True, cache=True)
 def project_bwd(
-    means, quats, scales, coeffs, sh_degree, viewmats, Ks, width, height, eps2d, radii,
+    means, quats, scales, sh0, shN, sh_degree, viewmats, Ks, width, height, eps2d, radii,
     v_means2d, v_conics, v_depths, v_colors,
-    v_means, v_quats, v_scales, v_coeffs,
+    v_means, v_quats, v_scales, v_sh0, v_shN,
 ):  # fmt: skip
-    """Backward of ``project_fwd``: fills v_means [N, 3], v_quats [N, 4], v_scales [N, 3], v_coeffs [N, K, 3]
-    from v_means2d [C, N, 2], v_conics [C, N, 3], v_depths [C, N], v_colors [C, N, 3] (culled entries ignored;
+    """Backward of ``project_fwd``: fills v_means [N, 3], v_quats [N, 4], v_scales [N, 3], v_sh0 [N, 1, 3] and
+    v_shN [N, K - 1, 3] (zero beyond the rendered bands) from v_means2d [C, N, 2], v_conics [C, N, 3], v_depths [C, N], v_colors [C, N, 3] (culled entries ignored;
     colours count for every camera, as in the torch reference)."""
     C, N = v_depths.shape
     nb = (sh_degree + 1) ** 2
@@ -335,16 +349,12 @@ def project_bwd(
                     v_scales[n, i] = 0.0
                 for i in range(4):
                     v_quats[n, i] = 0.0
-                for k in range(v_coeffs.shape[1]):
-                    for ch in range(3):
-                        v_coeffs[n, k, ch] = 0.0
+                _zero_sh(n, v_sh0, v_shN)
                 continue
             qn = _covariance(quats, scales, n, q, R, M, S)
             gS[:] = 0.0  # dL/dSigma (world), summed over cameras
             gm[:] = 0.0  # dL/dmean
-            for k in range(v_coeffs.shape[1]):
-                for ch in range(3):
-                    v_coeffs[n, k, ch] = 0.0
+            _zero_sh(n, v_sh0, v_shN)
             for c in range(C):
                 fx, fy = intr[c, 0], intr[c, 1]
                 _to_camera(means, n, Wall, tall, c, mc)
@@ -355,12 +365,15 @@ def project_bwd(
                     wk[:] = 0.0
                     for ch in range(3):
                         acc = 0.0
-                        for k in range(nb):
-                            acc += basis[k] * coeffs[n, k, ch]
+                        acc += basis[0] * sh0[n, 0, ch]
+                        for k in range(1, nb):
+                            acc += basis[k] * shN[n, k - 1, ch]
                         g = float(v_colors[c, n, ch]) if acc + 0.5 >= 0.0 else 0.0
-                        for k in range(nb):
-                            v_coeffs[n, k, ch] += basis[k] * g
-                            wk[k] += coeffs[n, k, ch] * g
+                        v_sh0[n, 0, ch] += basis[0] * g
+                        wk[0] += sh0[n, 0, ch] * g
+                        for k in range(1, nb):
+                            v_shN[n, k - 1, ch] += basis[k] * g
+                            wk[k] += shN[n, k - 1, ch] * g
                     gdir[:] = 0.0
                     _sh_basis_grad(sh_degree, x, y, z, wk, gdir)
                     dot = gdir[0] * x + gdir[1] * y + gdir[2] * z

@@ -71,17 +71,24 @@ class ActivatedGaussians:
     quats: Tensor  # [N, 4] wxyz, unnormalised
     scales: Tensor  # [N, 3] standard deviations (> 0)
     opacities: Tensor  # [N] in (0, 1)
-    sh: Tensor  # [N, K, 3] SH coefficients, DC first
+    sh0: Tensor  # [N, 1, 3] SH DC coefficient
+    shN: Tensor  # [N, K - 1, 3] higher SH bands
+
+    @property
+    def sh(self) -> Tensor:
+        """All SH coefficients, DC first [N, K, 3] (a concatenation: the rasterizer takes sh0 and shN apart)."""
+        return torch.cat([self.sh0, self.shN], dim=1)
 
 
 def activate(params: nn.ParameterDict | dict[str, Tensor]) -> ActivatedGaussians:
-    """exp for scales, sigmoid for opacities, DC and higher bands concatenated. Differentiable."""
+    """exp for scales, sigmoid for opacities; the SH bands as they are. Differentiable."""
     return ActivatedGaussians(
         means=params["means"],
         quats=params["quats"],
         scales=torch.exp(params["scales"]),
         opacities=torch.sigmoid(params["opacities"]),
-        sh=torch.cat([params["sh0"], params["shN"]], dim=1),
+        sh0=params["sh0"],
+        shN=params["shN"],
     )
 
 

@@ -35,6 +35,7 @@ def rasterize(
     height: int,
     *,
     sh_degree: int | None = None,
+    sh_rest: Tensor | None = None,  # [N, K - 1, 3] higher SH bands, colors then being the DC band [N, 1, 3]
     backgrounds: Tensor | None = None,  # [C, D]
     render_mode: str = "RGB",
     near_plane: float = 0.01,
@@ -50,7 +51,10 @@ def rasterize(
     ``backgrounds`` are added as T_final * bg to the colour channels (never to depth).
 
     With ``sh_degree`` the colours are SH coefficients evaluated per camera along the camera-to-mean direction,
-    then ``max(rgb + 0.5, 0)`` (3DGS / gsplat). ``absgrad`` also fills ``info["means2d"].absgrad`` on backward
+    then ``max(rgb + 0.5, 0)`` (3DGS / gsplat). ``sh_rest`` passes the bands above the DC term apart, as the
+    Gaussians keep them (``sh0`` and ``shN``): the coefficients are ``colors`` and ``sh_rest`` concatenated. The
+    ``cpu`` backend reads the two as they are (no copy of both a step, nor a split of their gradient); the others
+    concatenate them here. ``absgrad`` also fills ``info["means2d"].absgrad`` on backward
     (gsplat's option for ``DefaultStrategy(absgrad=True)``).
 
     ``info`` (gsplat's keys): ``means2d`` [C, N, 2] pixels (``retain_grad`` called, so ``.grad`` is filled by
@@ -66,10 +70,16 @@ def rasterize(
     >>> img.shape, alpha.shape, round(float(alpha.max()), 2)  # peak 0.9 * exp(-sigma) half a pixel off the mean
     (torch.Size([1, 24, 32, 3]), torch.Size([1, 24, 32, 1]), 0.82)
     """
-    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds)
+    shaped = colors  # what the checks read: with sh_rest, a free view shaped as all the coefficients
+    if sh_rest is not None:
+        _check_sh_rest(colors, sh_rest, sh_degree)
+        shaped = colors.expand(-1, 1 + sh_rest.shape[1], -1)
+    _check_inputs(means, quats, scales, opacities, shaped, viewmats, Ks, width, height, sh_degree, backgrounds)
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     name = _resolve_backend(backend, means)
+    if sh_rest is not None and name != "cpu":  # the other backends read the coefficients whole
+        colors, sh_rest = torch.cat([colors, sh_rest], dim=1), None
     if name == "cuda":
         from pipeline.splat import _cuda_backend
 
@@ -78,20 +88,28 @@ def rasterize(
             sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
             near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, absgrad=absgrad,
         )  # fmt: skip
-    if name == "cpu":
-        from pipeline.splat import _cpu_backend as impl
-    else:
-        from pipeline.splat import _torch_ref as impl
-
     C = viewmats.shape[0]
     with_colors = render_mode in ("RGB", "RGB+ED")
     with_depth = render_mode in ("ED", "RGB+ED")
     bg = _feature_backgrounds(backgrounds, C, with_colors, with_depth, means)  # [C, F] or None
-    img, alpha, info = impl.render(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        sh_degree=sh_degree, backgrounds=bg, with_colors=with_colors, with_depth=with_depth,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, absgrad=absgrad,
-    )  # fmt: skip
+    if name == "cpu":
+        from pipeline.splat import _cpu_backend
+
+        img, alpha, info = _cpu_backend.render(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+            sh_degree=sh_degree, sh_rest=sh_rest, backgrounds=bg, with_colors=with_colors, with_depth=with_depth,
+            near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, absgrad=absgrad,
+        )  # fmt: skip
+        tile_size = _cpu_backend.TILE_SIZE
+    else:
+        from pipeline.splat import _torch_ref
+
+        img, alpha, info = _torch_ref.render(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+            sh_degree=sh_degree, backgrounds=bg, with_colors=with_colors, with_depth=with_depth,
+            near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, absgrad=absgrad,
+        )  # fmt: skip
+        tile_size = _torch_ref.TILE_SIZE
     if with_depth:  # expected depth = sum(w z) / sum(w), as gsplat's "ED"
         img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
     means2d = info["means2d"]
@@ -105,7 +123,7 @@ def rasterize(
         width=width,
         height=height,
         n_cameras=C,
-        tile_size=impl.TILE_SIZE,
+        tile_size=tile_size,
         backend=name,
     )
     return img, alpha, info
@@ -123,6 +141,19 @@ def _resolve_backend(backend: str, means: Tensor) -> str:
     if backend == "cuda" and not (means.is_cuda and torch.cuda.is_available()):
         raise ValueError(f"backend 'cuda' needs CUDA tensors on a CUDA machine, got device {means.device}")
     return backend
+
+
+def _check_sh_rest(colors: Tensor, sh_rest: Tensor, sh_degree: int | None) -> None:
+    """Raise ValueError unless ``colors`` is an SH DC band [N, 1, 3] and ``sh_rest`` its higher bands [N, K - 1, 3]
+    on the same device (the band count is checked with the concatenation)."""
+    if sh_degree is None:
+        raise ValueError("sh_rest needs sh_degree: it holds the SH bands above the DC term")
+    n = colors.shape[0]
+    if colors.ndim != 3 or tuple(colors.shape[1:]) != (1, 3):
+        raise ValueError(f"with sh_rest, colors must be the SH DC band [N, 1, 3], got {tuple(colors.shape)}")
+    if sh_rest.ndim != 3 or sh_rest.shape[0] != n or sh_rest.shape[2] != 3 or sh_rest.device != colors.device:
+        raise ValueError(f"sh_rest must be [N, K - 1, 3] with N={n} on {colors.device}, got {tuple(sh_rest.shape)} "
+                         f"on {sh_rest.device}")
 
 
 def _feature_backgrounds(

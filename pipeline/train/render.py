@@ -14,7 +14,7 @@ from torch import Tensor, nn
 
 from pipeline.medium.model import Medium
 from pipeline.scene.records import View, ray_length_factor
-from pipeline.splat.gaussians import activate, num_sh_bases, sh_degree_of
+from pipeline.splat.gaussians import activate, sh_degree_of
 
 
 @dataclass
@@ -50,18 +50,18 @@ def render_gaussians(
     from pipeline.splat.rasterize import rasterize  # lazy: numba kernels load on first use
 
     g = activate(params)
-    colors = g.sh[:, : num_sh_bases(sh_degree)]  # [N, (d+1)^2, 3]
     out, alpha, info = rasterize(
         g.means,
         g.quats,
         g.scales,
         g.opacities,
-        colors,
+        g.sh0,  # [N, 1, 3]; the bands above it apart (sh_rest): the rasterizer reads those up to sh_degree
         viewmat[None],
         K[None],
         width,
         height,
         sh_degree=sh_degree,
+        sh_rest=g.shN,
         backgrounds=background[None],
         render_mode=render_mode,
         backend=backend,

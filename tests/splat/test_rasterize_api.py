@@ -130,3 +130,38 @@ def test_default_strategy_grows_and_prunes(backend, absgrad):
             opt.step()
             opt.zero_grad(set_to_none=True)
     assert len(params["means"]) != n0  # step 3 refined: duplicated / split / pruned
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+@pytest.mark.parametrize("sh_degree, bands", [(1, 4), (0, 4), (2, 16)])
+def test_sh_bands_apart_render_as_the_coefficients_whole(backend, sh_degree, bands):
+    """``colors`` the DC band and ``sh_rest`` the higher bands (as the Gaussians keep them): the same image, alpha
+    and gradients, bit for bit, as the concatenated coefficients; bands beyond ``sh_degree`` get zero gradient."""
+    g = torch.Generator().manual_seed(11)
+    sh = 0.5 * torch.randn(50, bands, 3, generator=g)
+    cot = torch.randn(1, H, W, 4, generator=g)
+    outs = []
+    for apart in (True, False):
+        sh0, shN = sh[:, :1].clone().requires_grad_(True), sh[:, 1:].clone().requires_grad_(True)
+        colors, rest = (sh0, shN) if apart else (torch.cat([sh0, shN], dim=1), None)
+        img, alpha, _ = rasterize(**_args(colors=colors), sh_degree=sh_degree, sh_rest=rest, render_mode="RGB+ED",
+                                  backend=backend)
+        ((img * cot).sum() + alpha.sum()).backward()
+        outs.append((img.detach(), alpha.detach(), sh0.grad, shN.grad))
+    for a, b in zip(*outs):
+        assert torch.equal(a, b)
+    k = (sh_degree + 1) ** 2
+    assert float(outs[0][3][:, k - 1:].abs().sum()) == 0.0
+    assert float(outs[0][2].abs().max()) > 0.0
+
+
+def test_bad_sh_rest_is_refused():
+    dc = torch.zeros(50, 1, 3)
+    with pytest.raises(ValueError, match="sh_rest needs sh_degree"):
+        rasterize(**_args(colors=dc), sh_rest=torch.zeros(50, 3, 3))
+    with pytest.raises(ValueError, match=r"colors must be the SH DC band \[N, 1, 3\]"):
+        rasterize(**_args(colors=torch.zeros(50, 4, 3)), sh_degree=1, sh_rest=torch.zeros(50, 3, 3))
+    with pytest.raises(ValueError, match=r"sh_rest must be \[N, K - 1, 3\] with N=50"):
+        rasterize(**_args(colors=dc), sh_degree=1, sh_rest=torch.zeros(49, 3, 3))
+    with pytest.raises(ValueError, match=r"SH coefficients \[N, K>=9, 3\] for sh_degree=2"):
+        rasterize(**_args(colors=dc), sh_degree=2, sh_rest=torch.zeros(50, 3, 3))

@@ -72,9 +72,9 @@ def test_numba_projection_matches_torch(sh_degree):
     vm, Ks = _cameras()
     coeffs = 0.3 * torch.randn(600, 16, 3, generator=torch.Generator().manual_seed(3))
     ps = [t.clone().requires_grad_() for t in (s.means, s.quats, s.scales, coeffs)]
+    bands = (ps[3][:, :1], ps[3][:, 1:]) if sh_degree is not None else (torch.zeros(600, 0, 3),) * 2
     m2, con, dep, col, radii, keys = _Project.apply(
-        ps[0], ps[1], ps[2], s.opacities, ps[3] if sh_degree is not None else torch.zeros(600, 0, 3),
-        vm, Ks, W, H, sh_degree, 0.3, 0.01, 1e10,
+        ps[0], ps[1], ps[2], s.opacities, *bands, vm, Ks, W, H, sh_degree, 0.3, 0.01, 1e10,
     )  # fmt: skip
     qs = [t.clone().requires_grad_() for t in (s.means, s.quats, s.scales, coeffs)]
     ref = project_gaussians(qs[0], qs[1], qs[2], s.opacities, vm, Ks, W, H)
@@ -121,9 +121,9 @@ def test_numba_projection_culls_off_screen_gaussians_as_the_reference_does(sh_de
     vm, Ks = _cameras()
     coeffs = 0.3 * torch.randn(n, 4, 3, generator=g)
     ps = [t.clone().requires_grad_() for t in (means, quats, scales, coeffs)]
+    bands = (ps[3][:, :1], ps[3][:, 1:]) if sh_degree is not None else (torch.zeros(n, 0, 3),) * 2
     m2, con, dep, col, radii, keys = _Project.apply(
-        ps[0], ps[1], ps[2], opac, ps[3] if sh_degree is not None else torch.zeros(n, 0, 3),
-        vm, Ks, W, H, sh_degree, 0.3, 0.01, 1e10,
+        ps[0], ps[1], ps[2], opac, *bands, vm, Ks, W, H, sh_degree, 0.3, 0.01, 1e10,
     )  # fmt: skip
     ref = project_gaussians(means, quats, scales, opac, vm, Ks, W, H)
     assert torch.equal(radii, ref.radii) and torch.equal(keys, ref.depth_keys)
