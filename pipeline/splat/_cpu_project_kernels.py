@@ -331,8 +331,9 @@ def project_bwd(
     v_means, v_quats, v_scales, v_sh0, v_shN,
 ):  # fmt: skip
     """Backward of ``project_fwd``: fills v_means [N, 3], v_quats [N, 4], v_scales [N, 3], v_sh0 [N, 1, 3] and
-    v_shN [N, K - 1, 3] (zero beyond the rendered bands) from v_means2d [C, N, 2], v_conics [C, N, 3], v_depths [C, N], v_colors [C, N, 3] (culled entries ignored;
-    colours count for every camera, as in the torch reference)."""
+    v_shN [N, K - 1, 3] (zero beyond the rendered bands) from v_means2d [C, N, 2], v_conics [C, N, 3],
+    v_depths [C, N], v_colors [C, N, 3] (culled entries ignored; colours count for every camera, as in the torch
+    reference)."""
     C, N = v_depths.shape
     nb = (sh_degree + 1) ** 2
     Wall, tall, intr, lim = _cameras(viewmats, Ks, width, height)
