@@ -1,9 +1,10 @@
 """SSIM on the CPU as one operator: numba kernels forward and a closed-form backward (``_ssim_kernels``).
 
 The training step's SSIM was torch's: five depthwise convolutions forward and three more backward, with ~30
-element-wise ops around them; compiled with the medium's losses it still took ~9-13 ms of a ~100 ms step at
-320x240 (the convolutions are mkldnn calls inductor cannot fuse). The kernels do the same arithmetic in ~2 ms
-forward and backward together (docs/DECISIONS.md, "Whole-job speed").
+element-wise ops around them; compiled with the medium's losses it still cost ~6.4 ms of a ~100 ms step at 320x240
+(the convolutions are mkldnn calls inductor cannot fuse), eager in the coarse start ~7 ms at 160x120. The kernels
+do the same arithmetic in ~2.3 ms forward and backward together at 320x240; in the compiled graph the step's SSIM
+costs ~3.2 ms (docs/DECISIONS.md, "Whole-job speed", session 25).
 
 ``ssim_planes`` is a ``torch.library`` custom operator with its own autograd formula, so a ``torch.compile``d
 loss graph keeps it as one opaque call instead of breaking around the numba code. Its twin is
@@ -90,7 +91,7 @@ def ssim_planes(x: Tensor, y: Tensor, g: Tensor, c1: float, c2: float) -> Tensor
 
 def compile_ssim_kernels() -> float:
     """Call both kernels once (forward and backward of a small image), so they compile into numba's on-disk cache
-    before the first job (``dualphys warmup``); returns the seconds it took (~0.5 s from a filled cache)."""
+    before the first job (``dualphys warmup``); returns the seconds it took."""
     import time
 
     t0 = time.perf_counter()
