@@ -93,23 +93,15 @@ def rasterize(
     with_depth = render_mode in ("ED", "RGB+ED")
     bg = _feature_backgrounds(backgrounds, C, with_colors, with_depth, means)  # [C, F] or None
     if name == "cpu":
-        from pipeline.splat import _cpu_backend
-
-        img, alpha, info = _cpu_backend.render(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            sh_degree=sh_degree, sh_rest=sh_rest, backgrounds=bg, with_colors=with_colors, with_depth=with_depth,
-            near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, absgrad=absgrad,
-        )  # fmt: skip
-        tile_size = _cpu_backend.TILE_SIZE
+        from pipeline.splat import _cpu_backend as impl
     else:
-        from pipeline.splat import _torch_ref
-
-        img, alpha, info = _torch_ref.render(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            sh_degree=sh_degree, backgrounds=bg, with_colors=with_colors, with_depth=with_depth,
-            near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, absgrad=absgrad,
-        )  # fmt: skip
-        tile_size = _torch_ref.TILE_SIZE
+        from pipeline.splat import _torch_ref as impl
+    apart = {} if sh_rest is None else {"sh_rest": sh_rest}  # only the cpu backend keeps one (concatenated above)
+    img, alpha, info = impl.render(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+        sh_degree=sh_degree, backgrounds=bg, with_colors=with_colors, with_depth=with_depth,
+        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, absgrad=absgrad, **apart,
+    )  # fmt: skip
     if with_depth:  # expected depth = sum(w z) / sum(w), as gsplat's "ED"
         img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
     means2d = info["means2d"]
@@ -123,7 +115,7 @@ def rasterize(
         width=width,
         height=height,
         n_cameras=C,
-        tile_size=tile_size,
+        tile_size=impl.TILE_SIZE,
         backend=name,
     )
     return img, alpha, info
@@ -145,7 +137,7 @@ def _resolve_backend(backend: str, means: Tensor) -> str:
 
 def _check_sh_rest(colors: Tensor, sh_rest: Tensor, sh_degree: int | None) -> None:
     """Raise ValueError unless ``colors`` is an SH DC band [N, 1, 3] and ``sh_rest`` its higher bands [N, K - 1, 3]
-    on the same device (the band count is checked with the concatenation)."""
+    on the same device (their band count against sh_degree is checked by _check_inputs)."""
     if sh_degree is None:
         raise ValueError("sh_rest needs sh_degree: it holds the SH bands above the DC term")
     n = colors.shape[0]
