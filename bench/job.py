@@ -222,6 +222,26 @@ def _stage_table(runs: dict[str, list[dict]]) -> list[str]:
     return lines
 
 
+def _round_table(runs: dict[str, list[dict]]) -> list[str]:
+    """Each round's job times and their ratio, then each checkout's spread over the warm rounds (1 on).
+
+    The machine's speed drifts (±30 % within an hour here); a ratio is only as good as the spread beside it.
+    """
+    a, b = list(runs)
+    lines = [f"| round | {a} (s) | {b} (s) | ratio |", "|---|---|---|---|"]
+    for r, (x, y) in enumerate(zip(runs[a], runs[b])):
+        lines.append(f"| {r} | {x['wall_s']:.1f} | {y['wall_s']:.1f} | {x['wall_s'] / y['wall_s']:.3f} |")
+    spreads = []
+    for n in (a, b):
+        warm = [r["wall_s"] for r in runs[n][1:]]
+        if len(warm) >= 2:
+            spreads.append(f"{n} {100 * (max(warm) / min(warm) - 1):.1f} %")
+    if spreads:
+        lines.append(f"\nspread of the warm rounds (max/min − 1): {', '.join(spreads)}; above ~3 % the machine "
+                     "drifted during the run, and the ratio carries that drift")
+    return lines
+
+
 def _profile_table(p: dict) -> list[str]:
     s = p["sections_ms"]
     step = s.get("step", p["step_ms"])
@@ -305,6 +325,8 @@ def main() -> None:
             print(f"{name} round {r}: {json.dumps({k: v for k, v in res.items() if k != 'sections'})}", flush=True)
     print(f"\n## The job: {args.views} generated views at {args.size}, --preset fast, mode {args.mode}\n")
     print("\n".join(_stage_table(runs)))
+    if len(runs) == 2:
+        print("\n" + "\n".join(_round_table(runs)))
     sec = runs["this"][-1]["sections"]
     n = max(1.0, sec.get("step#", 0.0))
     print(f"\nthis checkout, the job's own steps ({int(n)} incl. the probe's): "
