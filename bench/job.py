@@ -5,7 +5,8 @@
    a fresh process per run. Prints wall time per stage, the probe's share, held-out PSNR and the steps' sections.
    The compiled loss graphs' cache (``TORCHINDUCTOR_CACHE_DIR``) starts empty under ``--out``: round 0 pays the
    compile as a fresh install's first job at that image size does, later rounds load the graphs (``--rounds 2``
-   gives both; the table's ratio is of the medians, read the rounds for cold against warm).
+   gives both; the table's ratio is of the medians, read the rounds for cold against warm; ``--keep-graphs``
+   keeps an earlier run's graphs, so every round is warm).
    ``--compare <checkout>`` runs the same job with another checkout's ``pipeline`` (e.g. a worktree of the
    baseline commit), alternating the order every round, so both see the same load: the ratio is the number.
 2. **The step profile** at each ``--profile-sizes`` (default 320x240 and 640x480): the finished job's model
@@ -222,8 +223,9 @@ def _stage_table(runs: dict[str, list[dict]]) -> list[str]:
     return lines
 
 
-def _round_table(runs: dict[str, list[dict]]) -> list[str]:
-    """Each round's job times and their ratio, then each checkout's spread over the warm rounds (1 on).
+def _round_table(runs: dict[str, list[dict]], first_warm: int = 1) -> list[str]:
+    """Each round's job times and their ratio, then each checkout's spread over the warm rounds (``first_warm``
+    on: 1 when round 0 compiled the loss graphs).
 
     The machine's speed drifts (±30 % within an hour here); a ratio is only as good as the spread beside it.
     """
@@ -233,7 +235,7 @@ def _round_table(runs: dict[str, list[dict]]) -> list[str]:
         lines.append(f"| {r} | {x['wall_s']:.1f} | {y['wall_s']:.1f} | {x['wall_s'] / y['wall_s']:.3f} |")
     spreads = []
     for n in (a, b):
-        warm = [r["wall_s"] for r in runs[n][1:]]
+        warm = [r["wall_s"] for r in runs[n][first_warm:]]
         if len(warm) >= 2:
             spreads.append(f"{n} {100 * (max(warm) / min(warm) - 1):.1f} %")
     if spreads:
@@ -286,6 +288,8 @@ def main() -> None:
     ap.add_argument("--profile-steps", type=int, default=60)
     ap.add_argument("--no-numba", action="store_true", help="skip the fresh-cache compile measurement")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--keep-graphs", action="store_true",
+                    help="keep the compiled loss graphs an earlier run left under --out: every round is warm")
     ap.add_argument("--mode", default="auto", choices=list(JOB_MODES),
                     help="the jobs' --mode: a fixed mode compares checkouts like for like (no probe, same model)")
     ap.add_argument("--child-job", nargs=2, metavar=("JOB", "IMAGES"), help=argparse.SUPPRESS)
@@ -307,7 +311,8 @@ def main() -> None:
     # inductor's cache for the compiled loss graphs (pipeline.train.jit), emptied now: round 0 of a checkout that
     # compiles pays the compile (a fresh install's first job at this image size), later rounds load it
     graphs = args.out / "inductor-cache"
-    subprocess.run(["rm", "-rf", str(graphs)], check=True)
+    if not args.keep_graphs:
+        subprocess.run(["rm", "-rf", str(graphs)], check=True)
     os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(graphs)
     checkouts = {"this": OURS} | ({"compare": args.compare.resolve()} if args.compare else {})
     for name, path in checkouts.items():  # fill each checkout's kernel cache first: the jobs time a warm install
@@ -326,7 +331,7 @@ def main() -> None:
     print(f"\n## The job: {args.views} generated views at {args.size}, --preset fast, mode {args.mode}\n")
     print("\n".join(_stage_table(runs)))
     if len(runs) == 2:
-        print("\n" + "\n".join(_round_table(runs)))
+        print("\n" + "\n".join(_round_table(runs, 0 if args.keep_graphs else 1)))
     sec = runs["this"][-1]["sections"]
     n = max(1.0, sec.get("step#", 0.0))
     print(f"\nthis checkout, the job's own steps ({int(n)} incl. the probe's): "
