@@ -233,13 +233,11 @@ def _round_table(runs: dict[str, list[dict]], first_warm: int = 1) -> list[str]:
     lines = [f"| round | {a} (s) | {b} (s) | ratio |", "|---|---|---|---|"]
     for r, (x, y) in enumerate(zip(runs[a], runs[b])):
         lines.append(f"| {r} | {x['wall_s']:.1f} | {y['wall_s']:.1f} | {x['wall_s'] / y['wall_s']:.3f} |")
-    spreads, means = [], []
-    for n in (a, b):
-        warm = [r["wall_s"] for r in runs[n][first_warm:]]
-        if len(warm) >= 2:
-            spreads.append(f"{n} {100 * (max(warm) / min(warm) - 1):.1f} %")
-        means.append(statistics.fmean(warm) if warm else float("nan"))
-    lines.append(f"| warm mean | {means[0]:.1f} | {means[1]:.1f} | {means[0] / means[1]:.3f} |")
+    warm = {n: [r["wall_s"] for r in runs[n][first_warm:]] for n in (a, b)}
+    if warm[a] and warm[b]:
+        ma, mb = statistics.fmean(warm[a]), statistics.fmean(warm[b])
+        lines.append(f"| warm mean | {ma:.1f} | {mb:.1f} | {ma / mb:.3f} |")
+    spreads = [f"{n} {100 * (max(w) / min(w) - 1):.1f} %" for n, w in warm.items() if len(w) >= 2]
     if spreads:
         lines.append(f"\nspread of the warm rounds (max/min − 1): {', '.join(spreads)}; above ~3 % the machine "
                      "drifted during the run, and the ratio carries that drift")
