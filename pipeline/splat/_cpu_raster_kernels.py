@@ -7,9 +7,9 @@ Data flow (per call; C cameras share one flat list of C * n_tiles tiles):
    ``rows[P, 9 + 4] = (mx, my, a, b, c, opacity, log(255 opacity), y0, y1, f0..f3)`` (y0..y1: the image
    rows of the Gaussian's pixel box, so the kernels only visit the tile rows it can reach; four feature slots,
    zero-padded, so each kernel is one fused SIMD loop; ``repack_features`` swaps in further channel groups).
-2. ``raster_fwd``: one tile per work item; Gaussians outer, the 64 pixels inner (SIMD). Stores the image, the
-   final transmittance, and for every pair a 64-bit mask of the pixels it was composited at (so the backward
-   never re-decides anything), plus the end of each tile's used pair range.
+2. ``raster_fwd``: one tile per work item; Gaussians outer, the 64 pixels inner (one fused SIMD pass). Stores
+   the image, the final transmittance, and for every pair a 64-bit mask of the pixels it was composited at (so
+   the backward never re-decides anything), plus the end of each tile's used pair range.
 3. ``raster_bwd``: back to front per tile (3DGS's T / (1 - alpha) recursion); each pair's gradient
    ``(d mx, d my, d a, d b, d c, d opacity, |d mx|, |d my|, d f0..f3)`` is added to its item's row in one of
    a fixed number of accumulator slices [S, M, 8 + 4]: slice s owns tiles s, s + S, s + 2S, ... and one
@@ -41,6 +41,8 @@ _F1 = np.float32(1.0)
 _HALF = np.float32(0.5)
 _AMAX = np.float32(ALPHA_MAX)
 _TMIN = np.float32(T_MIN)
+_GATHER = np.uint64(0x0102040810204080)  # 8 bytes of 0/1 (one uint64) times this, >> 56: byte j -> bit j
+_S56 = np.uint64(56)
 
 
 @njit(cache=True)
@@ -298,6 +300,11 @@ def raster_fwd(rows, tile_offsets, width, height, backgrounds, out, out_t, masks
     out_t [C, H, W] final transmittance, masks [P] uint64 (bit p: composited at lane p; pre-zeroed),
     tile_end [T] (one past the last pair with a non-zero mask).
     No fastmath: sigma must round exactly as ``_torch_ref.pair_sigma`` does.
+
+    One fused pass over a pair's lanes, with per-lane flags in byte arrays and no integer reduction inside it, so
+    the loop vectorises 8 wide (a 64-bit mask or count built in the loop made it 4 wide, and a separate sigma pass
+    to skip pairs that hit no live pixel cost more than it saved: docs/DECISIONS.md, "Numbers behind code
+    comments", compositing forward). The 64-bit mask is gathered from the byte flags per tile row afterwards.
     """
     ntx = (width + TILE - 1) // TILE
     ntile = ntx * ((height + TILE - 1) // TILE)
@@ -306,53 +313,48 @@ def raster_fwd(rows, tile_offsets, width, height, backgrounds, out, out_t, masks
         inside = np.empty(LANES, np.bool_)
         c, x0, y0 = _tile_pixels(t, ntx, ntile, width, height, px, py, inside)
         T = np.ones(LANES, np.float32)
-        live = inside.copy()
-        sig = np.empty(LANES, np.float32)
-        acc = np.zeros((NF, LANES), np.float32)
-        n_live = 0
+        live = np.empty(LANES, np.uint8)  # 0/1 per lane; as 8 uint64 words, one per tile row
+        take = np.zeros(LANES, np.uint8)  # 0/1: composited at this lane by the current pair
         for p in range(LANES):
-            n_live += live[p]
+            live[p] = inside[p]
+        live_w, take_w = live.view(np.uint64), take.view(np.uint64)
+        acc = np.zeros((NF, LANES), np.float32)
         end = tile_offsets[t]
         for j in range(tile_offsets[t], tile_offsets[t + 1]):
-            if n_live == 0:
+            any_live = np.uint64(0)
+            for r in range(TILE):
+                any_live |= live_w[r]
+            if any_live == 0:
                 break
             mx, my, a, b, cc = rows[j, 0], rows[j, 1], rows[j, 2], rows[j, 3], rows[j, 4]
             op, thr = rows[j, 5], rows[j, 6]
             f0, f1, f2, f3 = rows[j, ROW], rows[j, ROW + 1], rows[j, ROW + 2], rows[j, ROW + 3]
             # lanes lo..hi-1: the tile rows inside the Gaussian's pixel box (outside it sigma > thr). Unsigned, so
-            # numba adds no negative-index wraparound and the loops stay SIMD (signed: much slower; docs/DECISIONS.md,
+            # numba adds no negative-index wraparound and the loop stays SIMD (signed: much slower; docs/DECISIONS.md,
             # "Numbers behind code comments").
-            lo = np.uint64(max(int(rows[j, 7]) - y0, 0) * TILE)
-            hi = np.uint64((min(int(rows[j, 8]) - y0, TILE - 1) + 1) * TILE)
-            hit = 0
-            for p in range(lo, hi):
+            r_lo = max(int(rows[j, 7]) - y0, 0)
+            r_hi = min(int(rows[j, 8]) - y0, TILE - 1) + 1
+            for p in range(np.uint64(r_lo * TILE), np.uint64(r_hi * TILE)):
                 dx = mx - px[p]
                 dy = my - py[p]
                 s = _HALF * (a * dx * dx + cc * dy * dy) + b * dx * dy  # == _torch_ref.pair_sigma
                 s = max(s, _F0)
-                sig[p] = s
-                hit += (s <= thr) & live[p]
-            if hit == 0:
-                continue
-            m = np.uint64(0)
-            n_stop = 0
-            for p in range(lo, hi):
-                s = sig[p]
                 alpha = min(_AMAX, op * fexp(-s))
-                ok = (s <= thr) & live[p]
+                ok = (s <= thr) & (live[p] != 0)
                 tn = T[p] * (_F1 - alpha)
                 stop = ok & (tn < _TMIN)
-                take = ok & (tn >= _TMIN)
-                w = alpha * T[p] if take else _F0
-                T[p] = tn if take else T[p]
+                tk = ok & (tn >= _TMIN)
+                w = alpha * T[p] if tk else _F0
+                T[p] = tn if tk else T[p]
                 live[p] = live[p] & (not stop)
-                m |= np.uint64(take) << p
-                n_stop += stop
+                take[p] = tk
                 acc[0, p] += w * f0
                 acc[1, p] += w * f1
                 acc[2, p] += w * f2
                 acc[3, p] += w * f3
-            n_live -= n_stop
+            m = np.uint64(0)
+            for r in range(r_lo, r_hi):  # 8 flag bytes of row r -> 8 mask bits at r * 8
+                m |= ((take_w[r] * _GATHER) >> _S56) << np.uint64(r * TILE)
             if m != 0:
                 masks[j] = m
                 end = j + 1
