@@ -2,8 +2,8 @@
 
 Data flow (per call; C cameras share one flat list of C * n_tiles tiles):
 1. ``bin_and_pack``: radix depth sort of the visible (camera, Gaussian) items, the tiles each ellipse reaches
-   (exact span per tile row), a parallel stable counting sort by tile, and one packed float32 row per
-   (tile, Gaussian) pair:
+   (exact span per tile row), a parallel stable counting sort by tile, the items reordered by their first tile
+   (locality for the backward's accumulators), and one packed float32 row per (tile, Gaussian) pair:
    ``rows[P, 9 + 4] = (mx, my, a, b, c, opacity, log(255 opacity), y0, y1, f0..f3)`` (y0..y1: the image
    rows of the Gaussian's pixel box, so the kernels only visit the tile rows it can reach; four feature slots,
    zero-padded, so each kernel is one fused SIMD loop; ``repack_features`` swaps in further channel groups).
@@ -124,8 +124,12 @@ def bin_and_pack(means2d, conics, opacities, thresholds, features, radii, depth_
 
     Inputs: means2d [C, N, 2], conics [C, N, 3], opacities [N], thresholds [N] (log(255 o), float32),
     features [C, N, 4], radii [C, N, 2] int32, depth_keys [C, N] float64.
-    Returns rows [P, 9 + 4] f32, tile_offsets [C * n_tiles + 1] i64, items [M] i64 (c * N + n, depth-sorted per
-    camera) and pair_item [P] i32 (index into items of each pair).
+    Returns rows [P, 9 + 4] f32, tile_offsets [C * n_tiles + 1] i64, items [M] i64 (c * N + n) and pair_item [P]
+    i32 (index into items of each pair). Each tile's pairs are in depth order (ties in index order); ``items``
+    itself is in the order of each item's first tile (row-major over C * n_tiles, ties in depth order), so the
+    items of neighbouring tiles sit close together: the backward's per-item accumulator rows and the packing's
+    item rows are then read from cache rather than from all over the table (docs/DECISIONS.md, "Numbers behind
+    code comments", item order).
     """
     C, N = depth_keys.shape
     F = NF
@@ -228,7 +232,10 @@ def bin_and_pack(means2d, conics, opacities, thresholds, features, radii, depth_
                 e += 1
                 for tx in range(lo, hi + 1):
                     hist[k, base + ty * ntx + tx] += 1
-    # 4. stable counting sort by tile: each chunk fills its slice of every tile, in depth order
+    # 4. the item order of the outputs: depth-sorted item i goes to slot[i], by its first tile (counting sort,
+    #    stable, so ties stay in depth order); items that reach no tile go last
+    slot = _first_tile_order(items, rect, row_off, span, N, ntx, ntile, C * ntile)
+    # 5. stable counting sort by tile: each chunk fills its slice of every tile, in depth order
     tile_offsets = np.empty(n_tiles_all + 1, np.int64)  # every entry is written below
     pos = np.empty((n_chunks, n_tiles_all), np.int64)
     run = 0
@@ -247,18 +254,52 @@ def bin_and_pack(means2d, conics, opacities, thresholds, features, radii, depth_
             for ty in range(rect[i, 2], rect[i, 3] + 1):
                 for tx in range(span[e, 0], span[e, 1] + 1):
                     t = base + ty * ntx + tx
-                    pair_item[pos[k, t]] = i
+                    pair_item[pos[k, t]] = slot[i]
                     pos[k, t] += 1
                 e += 1
-    # 5. pack rows in pair order (sequential writes; the item table is small enough to stay in cache)
+    # 6. items and their rows in slot order, then one row per pair in pair order (sequential writes; the rows read
+    #    are those of the tile's neighbourhood)
+    items_out = np.empty(M, np.int64)
+    slot_rows = np.empty((M, ROW + F), np.float32)
+    for blk in prange((M + iblock - 1) // iblock):
+        for i in range(blk * iblock, min(M, (blk + 1) * iblock)):
+            items_out[slot[i]] = items[i]
+            for f in range(ROW + F):
+                slot_rows[slot[i], f] = item_rows[i, f]
     rows = np.empty((P, ROW + F), np.float32)
     chunk = 4096
     for k in prange((P + chunk - 1) // chunk):
         for p in range(k * chunk, min(P, (k + 1) * chunk)):
             i = pair_item[p]
             for f in range(ROW + F):
-                rows[p, f] = item_rows[i, f]
-    return rows, tile_offsets, items, pair_item
+                rows[p, f] = slot_rows[i, f]
+    return rows, tile_offsets, items_out, pair_item
+
+
+@njit(cache=True)
+def _first_tile_order(items, rect, row_off, span, N, ntx, ntile, n_tiles_all):
+    """slot [M] i64: the position of depth-sorted item i when the items are ordered by their first tile
+    (``base + ty * ntx + lo`` of its first non-empty tile row; none: ``n_tiles_all``), ties in depth order."""
+    M = items.shape[0]
+    key = np.empty(M, np.int64)
+    count = np.zeros(n_tiles_all + 2, np.int64)
+    for i in range(M):
+        k = n_tiles_all
+        e = row_off[i]
+        for ty in range(rect[i, 2], rect[i, 3] + 1):
+            if span[e, 1] >= span[e, 0]:
+                k = (items[i] // N) * ntile + ty * ntx + span[e, 0]
+                break
+            e += 1
+        key[i] = k
+        count[k + 1] += 1
+    for t in range(n_tiles_all + 1):
+        count[t + 1] += count[t]
+    slot = np.empty(M, np.int64)
+    for i in range(M):
+        slot[i] = count[key[i]]
+        count[key[i]] += 1
+    return slot
 
 
 @njit(inline="always")
