@@ -427,13 +427,23 @@ def raster_bwd(rows, tile_offsets, tile_end, masks, pair_item, width, height, ba
     n_tiles, n_slices = tile_offsets.shape[0] - 1, acc.shape[0]
     # slice k takes tiles k, k + n_slices, ... in order: the sums do not depend on which thread ran what
     for k in prange(n_slices):
-        for i in range(acc.shape[1]):  # each slice zeroes its own rows (the caller passes np.empty)
-            for q in range(GROW + NF):
-                acc[k, i, q] = _F0
+        # each slice zeroes its own rows (the caller passes np.empty), just before a tile may first touch them: a
+        # tile adds only to rows <= the largest item index among its pairs, so rows z.. are zeroed up to there
+        # when the tile comes. With the items in first-tile order (bin_and_pack) a row is thus zeroed shortly
+        # before its first use, and its first add finds it in cache rather than where a zeroing pass over the
+        # whole slice left it (docs/DECISIONS.md, "Numbers behind code comments", item order).
+        z = 0
         for t in range(k, n_tiles, n_slices):
             start, end = tile_offsets[t], tile_end[t]
             if end == start:
                 continue
+            top = 0
+            for j in range(start, end):
+                top = max(top, pair_item[j] + 1)
+            for i in range(z, top):
+                for q in range(GROW + NF):
+                    acc[k, i, q] = _F0
+            z = max(z, top)
             px, py = np.empty(LANES, np.float32), np.empty(LANES, np.float32)
             inside = np.empty(LANES, np.bool_)
             c, x0, y0 = _tile_pixels(t, ntx, ntile, width, height, px, py, inside)
@@ -516,6 +526,9 @@ def raster_bwd(rows, tile_offsets, tile_end, masks, pair_item, width, height, ba
                 acc[k, row, GROW + 1] += g1
                 acc[k, row, GROW + 2] += g2
                 acc[k, row, GROW + 3] += g3
+        for i in range(z, acc.shape[1]):  # rows no tile of this slice touched
+            for q in range(GROW + NF):
+                acc[k, i, q] = _F0
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
