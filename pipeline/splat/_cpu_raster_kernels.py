@@ -215,6 +215,7 @@ def bin_and_pack(means2d, conics, opacities, thresholds, features, radii, depth_
     n_chunks = max(1, min(n_chunks, M))
     n_tiles_all = C * ntile
     hist = np.empty((n_chunks, n_tiles_all), np.int64)
+    first = np.empty(M, np.int64)  # each item's first tile (n_tiles_all: none), the key of its output order
     for k in prange(n_chunks):
         for t in range(n_tiles_all):
             hist[k, t] = 0
@@ -225,16 +226,19 @@ def bin_and_pack(means2d, conics, opacities, thresholds, features, radii, depth_
                 float(item_rows[i, 2]), b, float(item_rows[i, 4]), float(item_rows[i, 6])
             )
             e = row_off[i]
+            first[i] = n_tiles_all
             for ty in range(rect[i, 2], rect[i, 3] + 1):
                 lo, hi = _row_tiles(mx, my, b, ok, det, inv_a, kk, v_lim, vs, ty, rect[i, 0], rect[i, 1], width,
                                     height)  # fmt: skip
                 span[e, 0], span[e, 1] = lo, hi
                 e += 1
+                if hi >= lo and first[i] == n_tiles_all:
+                    first[i] = base + ty * ntx + lo
                 for tx in range(lo, hi + 1):
                     hist[k, base + ty * ntx + tx] += 1
     # 4. the item order of the outputs: depth-sorted item i goes to slot[i], by its first tile (counting sort,
     #    stable, so ties stay in depth order); items that reach no tile go last
-    slot = _first_tile_order(items, rect, row_off, span, N, ntx, ntile, C * ntile)
+    slot = _counting_order(first, n_tiles_all + 1)
     # 5. stable counting sort by tile: each chunk fills its slice of every tile, in depth order
     tile_offsets = np.empty(n_tiles_all + 1, np.int64)  # every entry is written below
     pos = np.empty((n_chunks, n_tiles_all), np.int64)
@@ -277,26 +281,15 @@ def bin_and_pack(means2d, conics, opacities, thresholds, features, radii, depth_
 
 
 @njit(cache=True)
-def _first_tile_order(items, rect, row_off, span, N, ntx, ntile, n_tiles_all):
-    """slot [M] i64: the position of depth-sorted item i when the items are ordered by their first tile
-    (``base + ty * ntx + lo`` of its first non-empty tile row; none: ``n_tiles_all``), ties in depth order."""
-    M = items.shape[0]
-    key = np.empty(M, np.int64)
-    count = np.zeros(n_tiles_all + 2, np.int64)
-    for i in range(M):
-        k = n_tiles_all
-        e = row_off[i]
-        for ty in range(rect[i, 2], rect[i, 3] + 1):
-            if span[e, 1] >= span[e, 0]:
-                k = (items[i] // N) * ntile + ty * ntx + span[e, 0]
-                break
-            e += 1
-        key[i] = k
-        count[k + 1] += 1
-    for t in range(n_tiles_all + 1):
+def _counting_order(key, n_keys):
+    """slot [M] i64: the position of element i when sorted by key [M] (values in 0..n_keys-1), ties in index order."""
+    count = np.zeros(n_keys + 1, np.int64)
+    for i in range(key.shape[0]):
+        count[key[i] + 1] += 1
+    for t in range(n_keys):
         count[t + 1] += count[t]
-    slot = np.empty(M, np.int64)
-    for i in range(M):
+    slot = np.empty(key.shape[0], np.int64)
+    for i in range(key.shape[0]):
         slot[i] = count[key[i]]
         count[key[i]] += 1
     return slot
