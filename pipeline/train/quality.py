@@ -6,8 +6,11 @@ with a good PSNR while it has lost the seabed. These measurements tell that apar
 
 - ``coverage``: share of a view's pixels where the Gaussians' alpha ≥ 0.5.
 - ``point_coverage``: share of the sparse points the view saw (its SfM track observations, else the points
-  projecting inside it) whose pixel has alpha ≥ 0.5. A matched feature is a surface by construction, so this
-  is the collapse test that open water in the frame (forward-looking views, the water column) cannot fool.
+  projecting inside it) whose pixel has alpha >= 0.5. A warning only: a dark surface needs no opacity over the
+  black background, so a healthy model leaves many feature points (the corners of dark pebbles, urchins) below
+  it (a plain 3DGS model of a generated scene without water: 45-50 % in every view).
+- ``uncovered_content``: share of the uncovered pixels whose photo is not dark: a view with next to nothing covered
+  where its photo shows something has lost its scene (:func:`lost_view`).
 - ``water_share``: mean over pixels of the light the water alone adds, α·B + (1 − α)·B∞, over the predicted
   light I; 1 means the view is all veil.
 - ``uncovered_detail``: share of a view's pixels that are uncovered although the photo shows structure there
@@ -15,7 +18,8 @@ with a good PSNR while it has lost the seabed. These measurements tell that apar
   spread on covered pixels. Open water is smooth and passes; a seabed given up as veil (an oblique view's far
   half) does not. It needs no noise model: covered pixels calibrate it per view.
 
-:func:`collapse_warnings` turns them into warnings; ``COLLAPSE_*`` are the limits (docs/DECISIONS.md).
+:func:`collapse_warnings` turns them into the verdict and warnings; ``COLLAPSE_*`` are the limits
+(docs/DECISIONS.md, "A collapse is what a collapse is").
 """
 
 from __future__ import annotations
@@ -29,9 +33,13 @@ from pipeline.scene.records import Scene, Sightings, View, ray_length_factor
 
 COVER_ALPHA = 0.5  # a pixel is covered when the Gaussians' alpha is at least this
 POINT_DEPTH_TOL = 0.25  # a point's pixel renders its surface when the rendered distance is within 25 % of it
-COLLAPSE_POINT_COVERAGE = 0.9  # a view whose sparse points are covered less than this has lost its scene
+COLLAPSE_COVERAGE = 0.05  # a view with less of its pixels covered than this, where its photo shows something, is lost
+COLLAPSE_VIEW_SHARE = 0.5  # more lost training views than this share: the scene is gone (docs/DECISIONS.md)
+COLLAPSE_UNCOVERED_DETAIL = 0.5  # a medium view with this share of its pixels uncovered where the photo shows detail
+#                                  is lost (the steep oblique views of photo medium water, far half as veil: ~0.4)
+DARK_PHOTO = 0.05  # a photo pixel whose brightest channel is under this shows nothing (a black frame, a shadow)
 COLLAPSE_BUDGET_SHARE = 0.02  # fewer Gaussians than this share of the budget: the model collapsed
-WARN_POINT_COVERAGE = 0.98  # below this a view is reported as partly lost (a warning, not a failure)
+WARN_POINT_COVERAGE = 0.9  # below this a medium view's sparse points are reported as partly uncovered (a warning)
 WARN_POINT_DEPTH = 0.5  # fewer of a view's points rendered at their distance than this: a warning (see below)
 FAR_FACTOR = 3.0  # a pixel rendered beyond this x the view's 95th-percentile point distance is "far behind"
 WARN_FAR_SHARE = 0.10  # more of a view's covered pixels far behind than this: a warning (real RUIE sand, before
@@ -53,6 +61,7 @@ class ViewQuality:
     far_share: float | None = None  # share of covered pixels rendered beyond FAR_FACTOR x the view's farthest points
     #                                 (95th percentile): surface drawn far behind where points are too sparse to say
     uncovered_detail: float | None = None  # share of pixels uncovered where the photo has detail the model lacks
+    uncovered_content: float | None = None  # share of the uncovered pixels where the photo is not dark (DARK_PHOTO)
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
@@ -127,7 +136,10 @@ def view_quality(name: str, alpha: np.ndarray, points_xy: np.ndarray, water: np.
     if water is not None and predicted is not None:
         share = float((water.sum(-1) / np.maximum(predicted.sum(-1), 1e-4)).clip(0, 1).mean())
     ud = uncovered_detail(photo, predicted, covered) if photo is not None and predicted is not None else None
-    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)), pd, fs, ud)
+    uc = None
+    if photo is not None and not covered.all():
+        uc = float((np.asarray(photo).max(-1)[~covered] >= DARK_PHOTO).mean())
+    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)), pd, fs, ud, uc)
 
 
 def _flagged(views: Sequence[ViewQuality], field: str, limit: float, below: bool
@@ -138,22 +150,46 @@ def _flagged(views: Sequence[ViewQuality], field: str, limit: float, below: bool
     return flagged, worst
 
 
-def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: int) -> tuple[bool, list[str]]:
-    """(collapsed, warnings). Collapsed: a view lost its sparse points (point coverage below
-    ``COLLAPSE_POINT_COVERAGE``) or the Gaussians are fewer than ``COLLAPSE_BUDGET_SHARE`` of the budget."""
+def lost_view(q: ViewQuality, medium: bool = True) -> bool:
+    """A view whose scene is gone: next to nothing covered (under ``COLLAPSE_COVERAGE`` of its pixels) although
+    its photo shows something there (``uncovered_content``; unknown counts as shown); or, with a medium, the veil
+    owning at least ``COLLAPSE_UNCOVERED_DETAIL`` of its pixels where the photo shows detail."""
+    empty = q.coverage < COLLAPSE_COVERAGE and (q.uncovered_content is None or q.uncovered_content >= 0.5)
+    eaten = medium and q.uncovered_detail is not None and q.uncovered_detail >= COLLAPSE_UNCOVERED_DETAIL
+    return empty or eaten
+
+
+def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: int, medium: bool = True
+                      ) -> tuple[bool, list[str]]:
+    """(collapsed, warnings). Collapsed only on evidence that the scene is gone: the Gaussians pruned away (fewer
+    than ``COLLAPSE_BUDGET_SHARE`` of the budget), or more than ``COLLAPSE_VIEW_SHARE`` of the training views lost
+    (:func:`lost_view`: nothing covered where the photo shows something). Everything else is a warning that names
+    the views: sparse-point coverage and depth agreement are noisy on real data (SfM outliers, points on moving
+    things, approximate 3DGS depths), and in plain splatting (``medium`` False) a dark surface is drawn with low
+    opacity over the black background, so no point coverage, depth or veil measure is even a warning there."""
     warnings: list[str] = []
     collapsed = False
-    lost, worst = _flagged(views, "point_coverage", COLLAPSE_POINT_COVERAGE, below=True)
-    if worst:
+    lost = [q for q in views if lost_view(q, medium)]
+    if lost and len(lost) > COLLAPSE_VIEW_SHARE * len(views):
         collapsed = True
-        warnings.append(f"{len(lost)} of {len(views)} training views lost their scene (sparse points covered: "
-                        f"worst {worst.name} {100 * (worst.point_coverage or 0):.0f}%, limit "
-                        f"{100 * COLLAPSE_POINT_COVERAGE:.0f}%)")
-    thin = [q for q in views if q.point_coverage is not None
-            and COLLAPSE_POINT_COVERAGE <= q.point_coverage < WARN_POINT_COVERAGE]
-    if thin:
-        warnings.append(f"{len(thin)} training views partly uncovered (sparse points covered below "
-                        f"{100 * WARN_POINT_COVERAGE:.0f}%: {', '.join(q.name for q in thin[:5])})")
+        warnings.append(f"{len(lost)} of {len(views)} training views lost their scene (under "
+                        f"{100 * COLLAPSE_COVERAGE:g}% of their pixels covered, or the veil drawn over "
+                        f"{100 * COLLAPSE_UNCOVERED_DETAIL:g}% of them where the photo shows detail: {_names(lost)})")
+    elif lost:
+        warnings.append(f"{len(lost)} of {len(views)} training views are mostly uncovered (under "
+                        f"{100 * COLLAPSE_COVERAGE:g}% of their pixels covered, or the veil drawn over "
+                        f"{100 * COLLAPSE_UNCOVERED_DETAIL:g}% of them where the photo shows detail: "
+                        f"{_names(lost)}): open water, or views the model lost; their restorations are the veil's")
+    if budget > 0 and n_gaussians < COLLAPSE_BUDGET_SHARE * budget:
+        collapsed = True
+        warnings.append(f"only {n_gaussians} Gaussians, {100 * n_gaussians / budget:.1f}% of the budget {budget}")
+    if not medium:
+        return collapsed, warnings
+    thin, worst = _flagged(views, "point_coverage", WARN_POINT_COVERAGE, below=True)
+    if worst:
+        warnings.append(f"{len(thin)} training views leave some of their sparse points uncovered (worst {worst.name} "
+                        f"{100 * (worst.point_coverage or 0):.0f}% covered, below {100 * WARN_POINT_COVERAGE:.0f}%: "
+                        f"{_names(thin)}): dark surfaces there are left to the veil")
     deep, worst = _flagged(views, "point_depth", WARN_POINT_DEPTH, below=True)
     if worst:
         warnings.append(f"{len(deep)} training views render under {100 * WARN_POINT_DEPTH:.0f}% of their sparse points "
@@ -169,10 +205,12 @@ def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: in
         warnings.append(f"{len(bare)} training views leave part of what the photo shows uncovered (worst {worst.name}: "
                         f"{100 * (worst.uncovered_detail or 0):.0f}% of its pixels show detail the model renders as "
                         f"open water): the restored image is dark there")
-    if budget > 0 and n_gaussians < COLLAPSE_BUDGET_SHARE * budget:
-        collapsed = True
-        warnings.append(f"only {n_gaussians} Gaussians, {100 * n_gaussians / budget:.1f}% of the budget {budget}")
     return collapsed, warnings
+
+
+def _names(views: Sequence[ViewQuality], most: int = 5) -> str:
+    more = f" and {len(views) - most} more" if len(views) > most else ""
+    return ", ".join(q.name for q in views[:most]) + more
 
 
 def opacity_histogram(opacities: np.ndarray, edges: Sequence[float] = (0, 0.005, 0.01, 0.05, 0.1, 0.5, 0.9, 1.0001)
@@ -201,7 +239,7 @@ def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, 
         per_view.append(view_quality(v.name, o.alpha, xy, water, o.I, o.depth * ray_length_factor(v.camera),
                                      ranges if len(ranges) else None, None if photos is None else photos[i]))
     n = int(model.gaussians["means"].shape[0])
-    collapsed, warnings = collapse_warnings(per_view, n, budget)
+    collapsed, warnings = collapse_warnings(per_view, n, budget, medium=model.medium is not None)
     opac = activate(model.gaussians).opacities.detach().cpu().numpy() if n else np.zeros(0)
     pcs = [q.point_coverage for q in per_view if q.point_coverage is not None]
     pds = [q.point_depth for q in per_view if q.point_depth is not None]
@@ -221,7 +259,8 @@ def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, 
         "uncovered_detail_max": round(max(uds), 4) if uds else None,
         "water_share_mean": round(float(np.mean(shares)), 4) if shares else None,
         "opacity_histogram": opacity_histogram(opac),
-        "limits": {"cover_alpha": COVER_ALPHA, "collapse_point_coverage": COLLAPSE_POINT_COVERAGE,
+        "limits": {"cover_alpha": COVER_ALPHA, "collapse_coverage": COLLAPSE_COVERAGE,
+                   "collapse_view_share": COLLAPSE_VIEW_SHARE, "collapse_uncovered_detail": COLLAPSE_UNCOVERED_DETAIL,
                    "point_depth_tol": POINT_DEPTH_TOL, "warn_point_depth": WARN_POINT_DEPTH,
                    "collapse_budget_share": COLLAPSE_BUDGET_SHARE, "warn_point_coverage": WARN_POINT_COVERAGE,
                    "warn_far_share": WARN_FAR_SHARE, "warn_uncovered_detail": WARN_UNCOVERED_DETAIL},
