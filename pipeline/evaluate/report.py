@@ -68,6 +68,7 @@ def water_coefficients(medium: dict | None, metres_per_unit: float | None) -> di
             entry["learned_per_metre"] = per_metre(medium[k], metres_per_unit)
         out[k] = entry
     out["prior"] = unc.get("prior")
+    out["failed"] = unc.get("failed")  # per channel: why the points' fit was not a measurement (None: it was)
     return out
 
 

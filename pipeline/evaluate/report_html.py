@@ -286,9 +286,12 @@ def _coefficients(w: dict | None) -> str:
             f"optical depth {', '.join(f'{x:g}' for x in prior['optical_depth'])} (R, G, B) at the sightings' "
             f"median range {prior['median_range']:.3g}, a factor of {math.exp(prior['sigma_log'] or 0):.1f} "
             "either way.")
+    failed = [f"{ch}: {why}" for ch, why in zip("RGB", w.get("failed") or [], strict=False) if why]
+    warn = ("" if not failed else "<p class=warn><b>The sparse points could not measure the water</b> in "
+            + escape("; ".join(failed)) + ". The classified water type's values were used there.</p>")
     return ("<h2>Water coefficients</h2><p class=muted>Learned by the medium; measured from the sparse points "
             "before training (what the training held the medium to), with that measurement's uncertainty (one σ) "
-            "and what determined it." + escape(note) + "</p>"
+            "and what determined it." + escape(note) + "</p>" + warn
             + table(["coefficient", "learned", "measured", "uncertainty", "source"], rows, 3))
 
 

@@ -142,6 +142,11 @@ def measure_water(points: np.ndarray, views: Sequence[View], images: Sequence[np
 PRIOR_SIGMA_LOG = float(np.log(3.0))  # the water-type prior on log β_D and log β_B: a factor of 3 either way
 BACKSCATTER_EXCESS_SIGMA = 0.1  # log β_B may exceed log β_D by about this much before it costs (Prior.penalty)
 DATA_DOMINATES = 0.5  # data σ below this share of the prior σ: "measured"; above 1/this: "prior"
+THETA_LOW = (-12.0, -12.0, -8.0)  # the fit's bounds on (log β_D, log β_B, logit B∞) (_fit_channel clamps there)
+THETA_HIGH = (4.0, 4.0, 3.0)  # logit 3: B∞ 0.953
+AT_BOUND = 0.05  # a coefficient this close to its bound (in θ) sits on it
+FAIL_PRIOR_SIGMAS = 3.0  # a β this many prior σ from the water type's value (a factor 27) ...
+FAIL_DATA_SIGMAS = 2.0  # ... while the data alone cannot exclude the prior's value by this many of their σ: failed
 
 
 @dataclass
@@ -238,8 +243,8 @@ def _fit_channel(inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Ten
 
         opt.step(closure)  # type: ignore[arg-type]
         with torch.no_grad():
-            theta.clamp_(min=torch.tensor([-12.0, -12.0, -8.0], dtype=torch.float64),
-                         max=torch.tensor([4.0, 4.0, 3.0], dtype=torch.float64))
+            theta.clamp_(min=torch.tensor(THETA_LOW, dtype=torch.float64),
+                         max=torch.tensor(THETA_HIGH, dtype=torch.float64))
             loss = float(objective(theta)[0])
         if best is None or loss < best[1]:
             best = (theta.detach().clone(), loss)
@@ -285,6 +290,51 @@ def _source(data_sigma: float, prior_sigma: float) -> str:
     return "prior" if data_sigma > prior_sigma / DATA_DOMINATES else "measured+prior"
 
 
+def fit_failure(theta: torch.Tensor, pr: Prior, data_sigma: np.ndarray) -> str | None:
+    """Why one channel's fit is not a measurement, or None when it is one.
+
+    - A coefficient on the fit's bound: the optimum lies outside what the model can express. On real green
+      water (RUIE, a video whose exposure changes frame to frame) least squares put B∞ on its upper bound (0.95,
+      grey) and β_D at 0.001 of a unit, explaining the frames' colour changes as a veil that never saturates;
+      read as water, that was "no water" and the job trained plain splatting on green photos.
+    - A β more than ``FAIL_PRIOR_SIGMAS`` prior σ from the water type's value while the data alone do not
+      exclude that value (it lies within ``FAIL_DATA_SIGMAS`` of their σ): the departure is the noise's.
+    A β measured small with data that do exclude the prior (a scene without water, seen over a wide range of
+    distances) is a measurement, and stands."""
+    t = theta.detach().numpy()
+    names = ("β_D", "β_B", "B∞")
+    for k in range(3):
+        if t[k] <= THETA_LOW[k] + AT_BOUND or t[k] >= THETA_HIGH[k] - AT_BOUND:
+            value = float(np.exp(t[k])) if k < 2 else float(1 / (1 + np.exp(-t[k])))
+            side = "lower" if t[k] <= THETA_LOW[k] + AT_BOUND else "upper"
+            return f"{names[k]} = {value:.3g} sits on the fit's {side} bound: the colours are not explained by water"
+    for k in range(2):
+        z_prior = abs(t[k] - pr.mean[k]) / pr.sigma[k]
+        z_data = abs(t[k] - pr.mean[k]) / data_sigma[k] if np.isfinite(data_sigma[k]) else 0.0
+        if z_prior > FAIL_PRIOR_SIGMAS and z_data < FAIL_DATA_SIGMAS:
+            return (f"{names[k]} = {np.exp(t[k]):.3g} is {z_prior:.1f} prior σ from the water type's "
+                    f"{np.exp(pr.mean[k]):.3g}, which the data alone cannot exclude ({z_data:.1f} of their σ)")
+    return None
+
+
+def _prior_fallback(inv: torch.Tensor, n_points: int, r: torch.Tensor, I: torch.Tensor, pr: Prior,  # noqa: E741
+                    ) -> torch.Tensor:
+    """θ of a channel whose fit failed: β_D and β_B at the water type's prior, B∞ refitted alone with them held
+    (well posed: J·A and the veil trade off only through β), or, should that land on a bound too, the level that
+    puts the veil at the 5th percentile of the sightings' colours at their median range."""
+    pin = Prior((pr.mean[0], pr.mean[1], 0.0), (1e-3, 1e-3, float("inf")))
+    r_med = float(r.median())
+    veil = 1.0 - float(np.exp(-np.exp(pr.mean[1]) * r_med))
+    start = float(np.clip(float(I.quantile(0.05)) / max(veil, 1e-3), 0.02, 0.9))
+    theta, _ = _fit_channel(inv, n_points, r, I, [(np.exp(pr.mean[0]), np.exp(pr.mean[1]), start)],
+                            penalty=lambda t: pin.penalty(t) * float(I.var()) / max(len(r), 1))
+    theta = theta.clone()
+    theta[0], theta[1] = pr.mean[0], pr.mean[1]
+    if theta[2] >= THETA_HIGH[2] - AT_BOUND or theta[2] <= THETA_LOW[2] + AT_BOUND:
+        theta[2] = float(np.log(start / (1 - start)))
+    return theta
+
+
 def fit_medium(obs: Observations, init_optical_depth: Sequence[float] = (0.8, 0.3, 0.25),
                min_points: int = 50, prior: bool = True) -> MediumEstimate | None:
     """Fit, per channel, of β_D, β_B, B∞ (shared) and J (per point, eliminated in closed form) to the
@@ -312,6 +362,7 @@ def fit_medium(obs: Observations, init_optical_depth: Sequence[float] = (0.8, 0.
     names = ("beta_D", "beta_B", "B_inf")
     unc: dict[str, dict[str, list]] = {k: {"sigma": [], "data_sigma": [], "source": []} for k in names}
     dof = max(int(keep.sum()) - len(pid) - 3, 1)
+    failed: list[str | None] = []  # per channel: why the fit failed (fit_failure), None where it held
     for c in range(3):
         tau = max(float(init_optical_depth[c]), 1e-3)
         binf0 = float(colour[:, c].quantile(0.05).clamp(0.02, 0.9))
@@ -333,13 +384,23 @@ def fit_medium(obs: Observations, init_optical_depth: Sequence[float] = (0.8, 0.
             theta, _ = _fit_channel(inv_t, len(pid), r, colour[:, c], [t0, p0], penalty=penalty)
             loss = float(_channel_loss(theta, inv_t, len(pid), r, colour[:, c])[0])
             post = _sigmas(_data_precision(theta, inv_t, len(pid), r, colour[:, c], s2, penalty))
+        why = fit_failure(theta, pr, data) if prior else None
+        if why is not None:  # a failed measurement: the water type's prior, never "no water" (module docstring)
+            log.warning("medium estimate, channel %s: %s; the water type's prior is used", "RGB"[c], why)
+            theta = _prior_fallback(inv_t, len(pid), r, colour[:, c], pr)
+            loss = float(_channel_loss(theta, inv_t, len(pid), r, colour[:, c])[0])
+            post = np.array([pr.sigma[0], pr.sigma[1], np.inf])
+        failed.append(why)
         for k, name in enumerate(names):
             unc[name]["sigma"].append(float(post[k]) if np.isfinite(post[k]) else None)  # None: not determined
             unc[name]["data_sigma"].append(float(data[k]) if np.isfinite(data[k]) else None)
-            unc[name]["source"].append(_source(float(data[k]), pr.sigma[k] if prior else float("inf")))
+            unc[name]["source"].append("prior" if why is not None and k < 2 else
+                                       "refit (β from the prior)" if why is not None else
+                                       _source(float(data[k]), pr.sigma[k] if prior else float("inf")))
         coef.append((float(theta[0].exp()), float(theta[1].exp()), float(theta[2].sigmoid())))
         sq.append(loss)
     unc["scale"] = {"beta_D": "log", "beta_B": "log", "B_inf": "logit"}  # type: ignore[assignment]
+    unc["failed"] = failed  # type: ignore[assignment]
     unc["prior"] = {"optical_depth": [float(x) for x in init_optical_depth], "median_range": r_med,  # type: ignore[assignment]
                     "sigma_log": PRIOR_SIGMA_LOG if prior else None}
     q10, q90 = np.percentile(obs.range[keep], [10, 90])

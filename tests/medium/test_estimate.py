@@ -159,3 +159,28 @@ def test_closed_form_gradient_matches_the_autograd_twin(theta):
     assert ((J == 0) | (J == 1)).sum() >= 40  # clamps are exercised
     np.testing.assert_allclose(loss, float(ref.detach()), rtol=1e-12)
     np.testing.assert_allclose(grad, ref_grad.numpy(), rtol=1e-8, atol=1e-14)
+
+
+def test_a_fit_on_its_bound_is_a_failed_measurement_and_the_prior_stands():
+    """Issue 39's real green video: colours that grow with range without saturating (an exposure that follows the
+    range) put least squares' B∞ on its bound (0.953, grey) with β_D ≈ 0, read downstream as "no water". That is
+    not a measurement: the channel says why and takes the water type's β (optical depth / median range)."""
+    rng = np.random.default_rng(0)
+    point = np.repeat(np.arange(400), 6)
+    r = rng.uniform(2.0, 5.0, point.size)
+    J = rng.uniform(0.05, 0.6, (400, 3))
+    colour = J[point] * np.exp(-0.01 * r[:, None]) + 0.08 * r[:, None] + rng.normal(0, 0.01, (point.size, 3))
+    obs = Observations(point, r, colour)
+    free = fit_medium(obs, (0.8, 0.3, 0.25), prior=False)
+    assert min(free.B_inf) > 0.95 and max(free.beta_D) < 1e-3  # the degenerate least-squares fit
+    est = fit_medium(obs, (0.8, 0.3, 0.25))
+    failed = est.uncertainty["failed"]
+    assert all(f is not None and "upper bound" in f for f in failed), failed
+    assert est.uncertainty["beta_D"]["source"] == ["prior"] * 3
+    np.testing.assert_allclose(est.beta_D, np.array([0.8, 0.3, 0.25]) / est.median_range, rtol=1e-6)
+    assert max(est.B_inf) < 0.95 and est.effect() > 0.1  # water, not "no water"
+
+
+def test_a_sound_fit_has_no_failure():
+    est = fit_medium(_exact_observations(WATER_PRESETS["medium"]))
+    assert est.uncertainty["failed"] == [None, None, None]
