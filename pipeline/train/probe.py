@@ -80,6 +80,7 @@ class ModeScore:
     attenuation: float | None = None  # mean 1 − A
     backscatter: float | None = None  # mean B
     coefficients: dict[str, Any] = field(default_factory=dict)  # the medium's global β_D, β_B, B∞
+    measurement: str | None = None  # how the sparse points measured the water (:func:`measurement_kind`)
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in dataclasses.asdict(self).items()}
@@ -123,7 +124,30 @@ def holdout_split(views: Sequence[View], points: np.ndarray, fraction: float) ->
     return fit, held
 
 
-def decide(scores: dict[str, ModeScore], cfg: ProbeConfig) -> tuple[str, str]:
+def measurement_kind(estimate: dict | None) -> str | None:
+    """How the sparse points measured the water, from a :class:`MediumEstimate` dict: ``failed`` (a channel's fit
+    was not a measurement, the water type's prior stands in: ``pipeline.medium.estimate.fit_failure``),
+    ``measured`` (the data pinned β_D in every channel), ``prior`` (the data could not: too little range spread);
+    None without an estimate."""
+    if not estimate:
+        return None
+    unc = estimate.get("uncertainty") or {}
+    if any(unc.get("failed") or []):
+        return "failed"
+    sources = (unc.get("beta_D") or {}).get("source") or []
+    return "measured" if sources and all(x == "measured" for x in sources) else "prior"
+
+
+def classified_water(water: dict | None) -> str | None:
+    """The classifier's water type when it calls the water ``medium`` or ``turbid`` and knows what it sees (not
+    ``known: false``: image statistics outside its training), else None."""
+    if not water or water.get("known") is False:
+        return None
+    kind = water.get("water_type")
+    return kind if kind in ("medium", "turbid") else None
+
+
+def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = None) -> tuple[str, str]:
     """(chosen mode, reason). A water model is needed when both hold:
 
     - the medium modes learned water: the largest ``effect`` is at least ``min_effect``;
@@ -135,6 +159,13 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig) -> tuple[str, str]:
       the water before training (``measured_effect`` >= ``min_effect``): the race guards against invented
       water, and water measured from the points' colour change across ranges is not invented (on real hazy
       footage plain splatting won the far views by 1-4 dB while the points measured 0.46-0.66 of water).
+
+    Water the medium barely learned in the probe (``effect`` < ``min_effect``) is still water when the classifier
+    calls it ``medium`` or ``turbid`` (:func:`classified_water`) and the sparse points could not measure it
+    (:func:`measurement_kind` is not ``measured``: a failed fit, or too little range spread); then only a race
+    lost by more than ``noise_db`` gives ``3dgs``. Where the points did measure weak water (a scene without
+    water seen over a wide range of distances), the measurement outranks the classifier, which has no "no water"
+    class and calls clear scenes ``medium``.
 
     Then the simplest medium mode within ``margin_db`` of the best medium mode is chosen, else ``3dgs``.
     (Splatting can imitate water in the photos, so "3dgs is within the margin of the best" alone cannot show
@@ -152,27 +183,47 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig) -> tuple[str, str]:
         if simplest is not None and measured >= cfg.min_effect:
             return simplest, (f"{where}; the sparse points measured water before training ({measured:.3f} >= "
                               f"{cfg.min_effect:g}): the simplest medium mode. {detail}")
+        typed = classified_water(water)
+        if simplest is not None and typed is not None and all(s.measurement != "measured" for s in media.values()):
+            return simplest, (f"{where}; the classifier calls the water {typed} and the sparse points could not "
+                              f"measure it: the simplest medium mode. {detail}")
         return "3dgs", (f"{where}, and the sparse points do not measure water ({measured:.3f} < "
                         f"{cfg.min_effect:g}): the simplest mode. {detail}")
-    water = max((s.effect or 0.0 for s in media.values()), default=0.0)
+    learned = max((s.effect or 0.0 for s in media.values()), default=0.0)
     plain = scores["3dgs"].psnr if "3dgs" in scores else -math.inf
     best_medium = max(media, key=lambda m: media[m].psnr, default=None)
-    if best_medium is None or water < cfg.min_effect:
-        return "3dgs", f"no water worth modelling (learned water {water:.3f} < {cfg.min_effect:g}). {detail}"
+    if best_medium is None:
+        return "3dgs", f"no medium mode was probed. {detail}"
     measured = max((s.measured_effect or 0.0 for s in media.values()), default=0.0)
     best = media[best_medium].psnr
     mode = next(m for m in MODES if m in media and media[m].psnr >= best - cfg.margin_db)
     simplest = f"the simplest medium mode within {cfg.margin_db:g} dB of the best ({best_medium})"
+    if learned < cfg.min_effect:
+        kinds = {s.measurement for s in media.values()}
+        typed = classified_water(water)
+        if typed is not None and "measured" not in kinds:  # the points could not measure it, the images show it
+            probs = (water or {}).get("probabilities") or {}
+            said = f"the classifier calls the water {typed} (p {probs.get(typed, float('nan')):.2f})"
+            if best >= plain - cfg.noise_db:
+                return mode, (f"{said}, the sparse points could not measure it ({' / '.join(sorted(map(str, kinds)))})"
+                              f" and the medium learned little of it in the probe ({learned:.3f} < "
+                              f"{cfg.min_effect:g}), but it predicts the held-back views as well as plain splatting "
+                              f"(within the probe's noise, {cfg.noise_db:g} dB): a medium, not no water; {simplest}. "
+                              f"{detail}")
+            return "3dgs", (f"{said}, but the medium predicts the held-back views worse than plain splatting by more "
+                            f"than the probe's noise ({best:.2f} < {plain:.2f} - {cfg.noise_db:g} dB) and learned "
+                            f"little water ({learned:.3f}): plain splatting. {detail}")
+        return "3dgs", f"no water worth modelling (learned water {learned:.3f} < {cfg.min_effect:g}). {detail}"
     if best >= plain - cfg.noise_db:
-        return mode, (f"the scene has water ({water:.3f} >= {cfg.min_effect:g}) that predicts the held-back "
+        return mode, (f"the scene has water ({learned:.3f} >= {cfg.min_effect:g}) that predicts the held-back "
                       f"views as well as plain splatting (within the probe's noise, {cfg.noise_db:g} dB); "
                       f"{simplest}. {detail}")
     if measured >= cfg.min_effect:
-        return mode, (f"the scene has water: learned {water:.3f} and measured from the sparse points before "
+        return mode, (f"the scene has water: learned {learned:.3f} and measured from the sparse points before "
                       f"training {measured:.3f} (>= {cfg.min_effect:g}); plain splatting predicts the held-back "
                       f"views {plain - best:.2f} dB better, which water the points measured cannot be blamed for "
                       f"(real footage: exposure changes, moving animals); {simplest}. {detail}")
-    return "3dgs", (f"the learned water ({water:.3f}) predicts the held-back views worse than plain "
+    return "3dgs", (f"the learned water ({learned:.3f}) predicts the held-back views worse than plain "
                     f"splatting by more than the probe's noise ({best:.2f} < {plain:.2f} - {cfg.noise_db:g} dB) "
                     f"and the sparse points do not measure it ({measured:.3f} < {cfg.min_effect:g}). {detail}")
 
@@ -261,7 +312,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
     _steps(warm, cfg.warmup, should_cancel)
     warm_state = warm.state_dict()
     warm_s = time.perf_counter() - t0
-    outputs, seconds, coefficients, measured = {}, {}, {}, {}
+    outputs, seconds, coefficients, measured, kinds = {}, {}, {}, {}, {}
     for k, mode in enumerate(modes):
         report((cfg.warmup + k * cfg.iterations) / total_steps, f"probe: {mode}")
         t0 = time.perf_counter()
@@ -277,6 +328,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
             coefficients[mode] = {k: v for k, v in tr.medium.effective_coefficients().items() if k != "units"}
             if tr.medium.estimate is not None:
                 measured[mode] = MediumEstimate(**tr.medium.estimate).effect()
+                kinds[mode] = measurement_kind(tr.medium.estimate)
     # Score only where every mode rendered a surface: where the fitted views never reached, the medium modes
     # would win by painting the water's colour and plain splatting lose by painting black.
     targets = [t.cpu().numpy() for t in held_targets]
@@ -289,10 +341,10 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
     for mode in modes:
         s = _score(outputs[mode], targets, masks)
         scores[mode] = ModeScore(seconds=seconds[mode], coefficients=coefficients.get(mode, {}),
-                                 measured_effect=measured.get(mode), **s)
+                                 measured_effect=measured.get(mode), measurement=kinds.get(mode), **s)
         log.info("probe %s: held-back PSNR %.2f dB%s (%.1f s)", mode, s["psnr"],
                  f", water effect {s['effect']:.3f}" if "effect" in s else "", seconds[mode])
-    chosen, reason = decide(scores, cfg)
+    chosen, reason = decide(scores, cfg, water)
     report(1.0, f"probe: chose {chosen}")
     cam = held_views[0].camera
     setup = {"fit_views": [scene.views[i].name for i in fit], "held_back_views": [scene.views[i].name for i in held],
@@ -308,7 +360,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
 
 
 def _water_summary(water: dict | None) -> dict | None:
-    return {k: water[k] for k in ("water_type", "probabilities") if k in water} if water else None
+    return {k: water[k] for k in ("water_type", "probabilities", "known") if k in water} if water else None
 
 
 def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: TrainConfig, *,
@@ -349,5 +401,5 @@ def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: Tra
 
 SELECTION_FILE = SELECTION_NAME  # in the train folder (a job's JobLayout.selection)
 
-__all__ = ["MODES", "ModeScore", "ProbeConfig", "Selection", "common_cover", "decide", "holdout_split", "probe_config",
-           "run_probe", "select_for_job", "SELECTION_FILE"]
+__all__ = ["MODES", "ModeScore", "ProbeConfig", "Selection", "classified_water", "common_cover", "decide",
+           "holdout_split", "measurement_kind", "probe_config", "run_probe", "select_for_job", "SELECTION_FILE"]

@@ -50,6 +50,32 @@ def test_rule_picks_the_simplest_mode_the_scene_needs():
         assert mode == "homogeneous", reason
 
 
+def test_water_the_points_could_not_measure_is_not_no_water():
+    """Issue 39: real green water whose sparse-point fit failed (B∞ on its bound) left the medium to learn 0.08 of
+    water in the probe, and auto said "no water" although the classifier called it medium (p 0.96). Unless the
+    points measured the water's weakness, the classifier's water stands and only a race lost by more than the
+    probe's noise gives plain splatting."""
+    cfg = ProbeConfig(margin_db=0.3, min_effect=0.1, noise_db=0.3)
+    green = {"water_type": "medium", "probabilities": {"clear": 0.0, "medium": 0.96, "turbid": 0.04}}
+
+    def scores(kind, plain=25.0, medium=24.9):
+        return {"3dgs": _score(plain),
+                "homogeneous": dataclasses.replace(_score(medium, 0.079), measurement=kind),
+                "dualphys": dataclasses.replace(_score(medium - 0.1, 0.07), measurement=kind)}
+
+    for kind in ("failed", "prior"):
+        mode, reason = decide(scores(kind), cfg, green)
+        assert mode == "homogeneous" and "calls the water medium (p 0.96)" in reason, reason
+        mode, reason = decide(scores(kind, medium=24.5), cfg, green)  # lost by 0.5 dB > the noise
+        assert mode == "3dgs" and "more than the probe's noise" in reason, reason
+    # measured weak water (a scene without water, wide range spread) outranks the classifier
+    mode, reason = decide(scores("measured"), cfg, green)
+    assert mode == "3dgs" and "no water worth modelling" in reason
+    # the classifier saying it does not know, or clear water, gives it no say
+    for other in ({**green, "known": False}, {**green, "water_type": "clear"}, None):
+        assert decide(scores("failed"), cfg, other)[0] == "3dgs"
+
+
 def test_rule_without_cover_rests_on_the_measured_water():
     """Held-back views the fitted views barely reach (the procedural survey's forward pass: 0 % covered): every
     PSNR is +inf and the learned water NaN. That race decides nothing; the sparse points' water does."""
