@@ -86,7 +86,12 @@ def cmd_synth(args: argparse.Namespace) -> int:
             print(f"dualphys synth: {e}", file=sys.stderr)
             return 1
         views, preset = cfg.views, cfg.preset
-    print(json.dumps({"out": str(out), "family": args.family, "views": views, "preset": preset,
+    extra = {}
+    if args.defocus > 0:
+        from pipeline.synth.defocus import defocus_scene
+
+        extra = {"defocus_px": args.defocus, "focus_m": round(defocus_scene(out, args.defocus), 3)}
+    print(json.dumps({"out": str(out), "family": args.family, "views": views, "preset": preset, **extra,
                       "seconds": round(time.perf_counter() - t0, 2)}))
     return 0
 
@@ -336,6 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(pipeline.synth.lens)")
     s.add_argument("--water-space", default="srgb", choices=["srgb", "linear"],
                    help="srgb: water applied to J as written; linear: to sRGB-decoded J, re-encoded after")
+    s.add_argument("--defocus", type=float, default=0.0, metavar="PX",
+                   help="blur the photos as a lens focused at the median depth does: blur circle PX pixels at "
+                        "infinity, sharp at the focus (pipeline.synth.defocus); 0 = sharp")
     s.set_defaults(func=cmd_synth)
 
     s = sub.add_parser("sfm", help="structure from motion: images -> posed PINHOLE cameras + sparse points")
