@@ -48,11 +48,15 @@ class WaterDecision:
     bg_ratio: float  # the mean blue/green ratio the index was computed from
     n_images: int  # how many images were averaged
     settings: ControllerSettings  # learning rates, α, β, medium start
-    closest: WaterType = "medium"  # the argmax class, also when the water is unknown
+    closest: WaterType | None = None  # the argmax class, also when the water is unknown (None: water_type)
     known: bool = True  # False: the images are outside the classifier's training (water_type "unknown")
     confidence: float = 1.0  # max probability × trust (.ood): low when the images are at or past its edge
     reason: str | None = None  # plain words when unknown or less trusted
     ood: dict | None = None  # the job's out-of-distribution statistics, trust and thresholds (.ood)
+
+    def __post_init__(self) -> None:
+        if self.closest is None and self.water_type != UNKNOWN:
+            object.__setattr__(self, "closest", self.water_type)
 
     @property
     def lr_attenuation(self) -> float:
