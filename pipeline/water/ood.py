@@ -153,7 +153,8 @@ class OodVerdict:
     statistics: dict[str, float | None]  # the job's medians: distance, falloff, luma, clipped
 
     def to_dict(self) -> dict:
-        return {"known": self.known, "trust": self.trust, "reason": self.reason, **self.statistics}
+        """The statistics and trust (known and reason are the decision's own fields)."""
+        return {"trust": self.trust, **self.statistics}
 
 
 def _ramp(value: float, typical: float, limit: float) -> float:
