@@ -152,7 +152,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"[3/3] SfM {sfm['registered']}/{sfm['total']} registered ({sfm['mean_reproj_error_px']:.2f} px; "
           f"cameras within {errs['rot_err_deg_mean']:.2f} deg / {100 * errs['center_err_rel_mean']:.2f} % of "
           f"the path of the truth); water classified '{water['water_type']}' "
-          f"(p={water['probabilities'][water['water_type']]:.2f}); held-out PSNR with water "
+          f"(closest {water.get('closest', water['water_type'])}, "
+          f"p={max(water['probabilities'].values()):.2f}); held-out PSNR with water "
           f"{_db(res['evaluate']['metrics']['test']['psnr'])}; {train['n_gaussians']} Gaussians")
     rest = res["evaluate"].get("restoration")
     if rest:

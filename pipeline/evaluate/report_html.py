@@ -112,7 +112,10 @@ def no_water_removed(r: dict) -> bool:
 
 def _kpis(r: dict) -> str:
     t, rest = r["metrics"]["test"], r["restoration"]
-    water = r["water"]["water_type"] if r["water"] else None
+    w = r["water"]
+    water = w["water_type"] if w else None
+    if water == "unknown":
+        water = f"unknown (closest {w.get('closest')})"
     items = [("mode", r["mode"]), ("preset", r["preset"]), ("water", water),
              (f"held-out PSNR ({t['n_views']} views)", f"{fmt(t['psnr'])} dB"), ("held-out SSIM", fmt(t["ssim"], 3)),
              ("LPIPS", fmt(t["lpips"], 3))]
@@ -168,9 +171,7 @@ def _schedule(s: dict | None) -> str:
 def _selection(r: dict) -> str:
     """The mode decision with the water-type decision beside it, and what the mode means for restoration."""
     sel, w = r["selection"], r["water"]
-    water = (f"Water classified <b>{escape(w['water_type'])}</b>"
-             + (f" (p = {w['probabilities'][w['water_type']]:.2f})" if w.get("probabilities", {}).get(
-                 w["water_type"]) is not None else "") + "." if w else "Water type not classified.")
+    water = f"Water classified {water_sentence(w)}." if w else "Water type not classified."
     html = f"<h2>Model selection</h2><p>Mode <b>{escape(sel['mode'])}</b>: {escape(sel['reason'])}. {water}</p>"
     if no_water_removed(r):
         html += ("<p><b>No water was removed.</b> Mode 3dgs fits the photos as they are, with no model of the "
@@ -250,9 +251,26 @@ def _water(w: dict | None) -> str:
     if not w:
         return "<h2>Water type</h2><p class=muted>Not classified.</p>"
     probs = ", ".join(f"{escape(k)} {v:.2f}" for k, v in w.get("probabilities", {}).items())
-    rest = [[k, json.dumps(v)] for k, v in w.items() if k not in ("water_type", "probabilities")]
-    return (f"<h2>Water type</h2><p>Classified <b>{escape(w['water_type'])}</b> (probabilities {probs}).</p>"
+    rest = [[k, json.dumps(v)] for k, v in w.items() if k not in ("water_type", "probabilities", "reason")]
+    return (f"<h2>Water type</h2><p>Classified {water_sentence(w)} (probabilities {probs}).</p>"
             + table(["decision field", "value"], rest))
+
+
+def water_sentence(w: dict) -> str:
+    """"<b>clear</b> (p = 0.93)", or for water the classifier does not know "<b>unknown</b> (closest: clear,
+    p 0.998, but ...reason; trained with the medium water's settings)". HTML, escaped."""
+    probs = w.get("probabilities") or {}
+    if w.get("water_type") == "unknown":
+        closest = w.get("closest") or (max(probs, key=probs.get) if probs else "?")
+        p = f", p {probs[closest]:.3f}" if closest in probs else ""
+        why = f", but {w['reason']}" if w.get("reason") else ""
+        then = f"; trained with the {w['settings_from']} water's settings" if w.get("settings_from") else ""
+        return f"<b>unknown</b> (closest: {escape(closest)}{p}{escape(why)}{escape(then)})"
+    p = probs.get(w["water_type"])
+    conf = w.get("confidence")
+    extra = (f", confidence {conf:.2f}" if conf is not None and p is not None and conf < p - 0.005 else "")
+    note = f"; {w['reason']}" if w.get("reason") else ""
+    return (f"<b>{escape(w['water_type'])}</b>" + (f" (p = {p:.2f}{extra}{escape(note)})" if p is not None else ""))
 
 
 def _timings(t: dict) -> str:

@@ -360,7 +360,8 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
 
 
 def _water_summary(water: dict | None) -> dict | None:
-    return {k: water[k] for k in ("water_type", "probabilities", "known") if k in water} if water else None
+    keys = ("water_type", "probabilities", "closest", "known", "confidence")
+    return {k: water[k] for k in keys if k in water} if water else None
 
 
 def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: TrainConfig, *,

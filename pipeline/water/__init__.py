@@ -2,7 +2,8 @@
 
 - :mod:`.features`    pooled image statistics (pure tensor functions)
 - :mod:`.classifier`  eq. 14 MLP and its JSON weights file (shipped in ``pipeline/data``)
-- :mod:`.decision`    ``classify(images) -> WaterDecision``
+- :mod:`.ood`         is the water outside what the classifier learned (lamp-lit, dark, blank frames)
+- :mod:`.decision`    ``classify(images) -> WaterDecision`` (a class, or "unknown" with the closest one)
 - :mod:`.controller`  the paper's rule: learning rates, α, β, medium start
 - :mod:`.sampling`, :mod:`.dataset`, :mod:`.training`  the synthetic training data and ``train_classifier``
 

@@ -5,8 +5,10 @@
 ``pool(I)`` is the pooled statistics vector of :func:`.features.image_features`, standardised with the mean and
 std of the training set (stored with the weights). The weights file is JSON (a few KB, readable, diffable):
 ``{"format", "version", "classes", "feature_names", "feature_mean", "feature_std", "W1", "b1", "W2", "b2",
-"metrics", "training"}``, one key per line. Weights are written with the shortest decimal that round-trips their
-float32 value, so a save/load cycle is exact.
+"metrics", "training"}``, one key per line, and optionally ``"feature_distribution"`` (the training features'
+centre and whitening factor in the standardised space, for the out-of-distribution distance of :mod:`.ood`;
+added to the shipped file without retraining, so the MLP's numbers are unchanged). Weights are written with
+the shortest decimal that round-trips their float32 value, so a save/load cycle is exact.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from torch import Tensor, nn
 
 from pipeline.water.controller import WATER_TYPES
 from pipeline.water.features import FEATURE_NAMES, NUM_FEATURES
+from pipeline.water.ood import FeatureDistribution
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +43,7 @@ class WaterClassifier(nn.Module):
         self.register_buffer("feature_std", torch.ones(num_features))
         self.fc1 = nn.Linear(num_features, hidden)  # W1
         self.fc2 = nn.Linear(hidden, num_classes)  # W2
+        self.distribution: FeatureDistribution | None = None  # the training features' (None: not recorded)
 
     def set_standardisation(self, mean: Tensor, std: Tensor) -> None:
         """Store the training-set feature statistics ([F] each); std is floored so a constant feature is safe."""
@@ -52,6 +56,14 @@ class WaterClassifier(nn.Module):
             raise ValueError(f"expected features [N, {self.feature_mean.shape[0]}], got {tuple(features.shape)}")
         z = (features - self.feature_mean) / self.feature_std
         return self.fc2(torch.relu(self.fc1(z)))
+
+    def standardised(self, features: Tensor) -> Tensor:
+        """The features as the MLP sees them. [N, F] → [N, F]"""
+        return (features - self.feature_mean) / self.feature_std
+
+    def distance(self, features: Tensor) -> Tensor | None:
+        """Mahalanobis distance from the training features ([N, F] → [N]); None without a recorded distribution."""
+        return self.distribution.distance(self.standardised(features)) if self.distribution is not None else None
 
     def probabilities(self, features: Tensor) -> Tensor:
         """Eq. 14: softmax over (clear, medium, turbid). [N, F] → [N, 3]"""
@@ -66,7 +78,7 @@ def classifier_to_dict(model: WaterClassifier, *, metrics: dict | None = None, t
         a = t.detach().cpu().float().numpy()
         return np.array([float(str(v)) for v in a.ravel()]).reshape(a.shape).tolist()
 
-    return {
+    d = {
         "format": WEIGHTS_FORMAT,
         "version": WEIGHTS_VERSION,
         "classes": list(WATER_TYPES),
@@ -81,6 +93,26 @@ def classifier_to_dict(model: WaterClassifier, *, metrics: dict | None = None, t
         "metrics": metrics or {},
         "training": training or {},
     }
+    if model.distribution is not None:
+        d["feature_distribution"] = distribution_to_dict(model.distribution)
+    return d
+
+
+def distribution_to_dict(dist: FeatureDistribution) -> dict:
+    """JSON-able record of a :class:`~.ood.FeatureDistribution`: the whitening factor as the rows of its lower
+    triangle (row i holds i + 1 values), float32 shortest decimals."""
+    w = dist.whitening.detach().cpu().float().numpy()
+    return {"shrinkage": dist.shrinkage,
+            "centre": [float(str(v)) for v in dist.centre.detach().cpu().float().numpy()],
+            "whitening_lower": [[float(str(v)) for v in w[i, : i + 1]] for i in range(w.shape[0])]}
+
+
+def distribution_from_dict(d: dict) -> FeatureDistribution:
+    n = len(d["centre"])
+    w = torch.zeros(n, n)
+    for i, row in enumerate(d["whitening_lower"]):
+        w[i, : i + 1] = torch.tensor(row)
+    return FeatureDistribution(torch.tensor(d["centre"]), w, float(d["shrinkage"]))
 
 
 def classifier_from_dict(d: dict) -> WaterClassifier:
@@ -100,6 +132,8 @@ def classifier_from_dict(d: dict) -> WaterClassifier:
         model.fc1.bias.copy_(torch.tensor(d["b1"]))
         model.fc2.weight.copy_(torch.tensor(d["W2"]))
         model.fc2.bias.copy_(torch.tensor(d["b2"]))
+    if "feature_distribution" in d:
+        model.distribution = distribution_from_dict(d["feature_distribution"])
     model.eval()
     return model
 

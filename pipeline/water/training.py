@@ -18,9 +18,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipeline.water.classifier import WaterClassifier, save_classifier
+from pipeline.water.classifier import WaterClassifier, classifier_from_dict, read_weights_record, save_classifier
 from pipeline.water.controller import WATER_TYPES
 from pipeline.water.dataset import RenderSpec, make_samples, render_clean
+from pipeline.water.ood import SHRINKAGE, fit_distribution
 from pipeline.water.sampling import NuisanceSpec
 
 log = logging.getLogger(__name__)
@@ -105,6 +106,8 @@ def train_classifier(out_path: str | Path, seed: int = 0, cfg: ClassifierTrainCo
     train, heldout = make_split(cfg, seed, "train"), make_split(cfg, seed, "heldout")
     t_data = time.perf_counter() - t0
     model = fit(*train, cfg, seed)
+    with torch.no_grad():
+        model.distribution = fit_distribution(model.standardised(train[0]), SHRINKAGE)
     cm_train = confusion_matrix(model, *train)
     cm_held = confusion_matrix(model, *heldout)
     metrics = {
@@ -122,6 +125,22 @@ def train_classifier(out_path: str | Path, seed: int = 0, cfg: ClassifierTrainCo
              metrics["heldout_accuracy"], metrics["n_heldout"], metrics["train_accuracy"], metrics["seconds"],
              out_path)
     return metrics
+
+
+def record_distribution(path: str | Path, features: torch.Tensor | None = None) -> Path:
+    """Add the training features' distribution (:mod:`.ood`) to an existing weights file, leaving its MLP,
+    metrics and training record as they are. ``features``: the file's training split when already at hand
+    (else regenerated from the file's config and seed, minutes); checked against the file's stored mean."""
+    rec = read_weights_record(path)
+    model = classifier_from_dict(rec)
+    if features is None:
+        cfg, seed = config_from_record(rec["training"])
+        features, _ = make_split(cfg, seed, "train")
+    if not torch.equal(features.mean(dim=0), model.feature_mean):
+        raise ValueError("these features are not the weights' training split (their mean differs from the file's)")
+    with torch.no_grad():
+        model.distribution = fit_distribution(model.standardised(features), SHRINKAGE)
+    return save_classifier(model, path, metrics=rec["metrics"], training=rec["training"])
 
 
 def config_from_record(training: dict) -> tuple[ClassifierTrainConfig, int]:

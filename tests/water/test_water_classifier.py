@@ -87,7 +87,8 @@ def test_weights_for_other_features_are_refused(shipped):
 def test_shipped_file_is_small_and_complete(shipped):
     assert shipped["classes"] == list(WATER_TYPES)
     assert shipped["metrics"]["heldout_accuracy"] >= 0.90
-    assert len(json.dumps(shipped)) < 12_000
+    # ~8 KB of MLP and records, ~5 KB of the training features' distribution (pipeline.water.ood)
+    assert len(json.dumps(shipped)) < 16_000
 
 
 def test_presets_lie_inside_their_class_ranges():

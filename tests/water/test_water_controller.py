@@ -72,7 +72,9 @@ def test_decision_to_dict_is_flat_and_complete():
     s = controller_settings("turbid")
     d = WaterDecision("turbid", {"clear": 0.1, "medium": 0.2, "turbid": 0.7}, 0.4, 0.87, 3, s).to_dict()
     assert d == {"water_type": "turbid", "probabilities": {"clear": 0.1, "medium": 0.2, "turbid": 0.7},
-                 "index_w": 0.4, "bg_ratio": 0.87, "n_images": 3, "lr_attenuation": 5e-4, "lr_scattering": 1e-4,
+                 "closest": "turbid", "known": True, "confidence": 1.0, "reason": None, "ood": None,
+                 "settings_from": "turbid", "index_w": 0.4, "bg_ratio": 0.87, "n_images": 3,
+                 "lr_attenuation": 5e-4, "lr_scattering": 1e-4,
                  "alpha": 0.8, "beta": 1.2, "medium_start_fraction": pytest.approx(1 / 3),
                  "init_optical_depth": (1.5, 0.9, 1.0)}
     assert isinstance(s, ControllerSettings) and s.to_dict()["water_type"] == "turbid"

@@ -42,7 +42,7 @@ def test_u45_confusion_matrix(images):
     cm = np.zeros((3, 3), dtype=int)
     for i, folder in enumerate(FOLDERS):
         for img in images[folder]:
-            cm[i, WATER_TYPES.index(classify([img]).water_type)] += 1
+            cm[i, WATER_TYPES.index(classify([img]).closest)] += 1  # the class, also where one photo is "unknown"
     recall = np.diag(cm) / cm.sum(axis=1)
     assert np.trace(cm) / cm.sum() >= 0.55, cm  # measured 0.64; chance 0.33
     assert (recall >= 1 / 3).all(), cm  # measured ≥ 0.40 for every class
