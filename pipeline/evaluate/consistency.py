@@ -46,6 +46,7 @@ MIN_POINTS = 30  # points seen at clearly different ranges needed for a score
 MIN_CONTRAST_SHARE = 0.25  # the restored colours' contrast below this share of the photos': undefined (flattened)
 TUKEY_C = 4.685  # Tukey's biweight cut-off in robust standard deviations (95 % efficiency at the normal)
 MAD_TO_SIGMA = 1.4826
+CLIP_LOW, CLIP_HIGH = 0.5 / 255, 254.5 / 255  # a restored value at 0 or 255 of 8 bits: clipped
 
 
 @dataclass
@@ -155,7 +156,8 @@ def colour_consistency(photo: Observations, restored: Observations, min_points: 
     clearly different ranges), ``n_sightings`` (their sightings), ``range_ratio`` (90th / 10th percentile of those
     sightings' ranges), ``range_spread`` (Δr, scene units), ``photo`` and ``restored`` (:class:`ChannelDrift` as
     dicts), ``photo_score`` and ``restored_score`` (mean over the channels of the score), ``share``
-    (restored_score / photo_score), ``contrast_ratio`` (restored / photo contrast, per channel)."""
+    (restored_score / photo_score), ``contrast_ratio`` (restored / photo contrast, per channel), ``clipped`` (share
+    of the restored sightings at 0 or 1, per channel)."""
     if photo.point.shape != restored.point.shape or not np.array_equal(photo.point, restored.point) \
             or not np.allclose(photo.range, restored.range):
         raise ValueError("photo and restored observations must be the same sightings (point and range)")
@@ -164,7 +166,7 @@ def colour_consistency(photo: Observations, restored: Observations, min_points: 
     keep = np.isin(photo.point, sp.point)
     out: dict = {"defined": False, "reason": None, "n_points": len(sp.point), "n_sightings": int(keep.sum()),
                  "range_ratio": None, "range_spread": None, "photo": None, "restored": None, "photo_score": None,
-                 "restored_score": None, "share": None, "contrast_ratio": None,
+                 "restored_score": None, "share": None, "contrast_ratio": None, "clipped": None,
                  "min_point_range_ratio": MIN_POINT_RANGE_RATIO}
     if len(sp.point) < min_points:
         out["reason"] = (f"only {len(sp.point)} sparse points were seen at clearly different ranges (farthest "
@@ -181,10 +183,14 @@ def colour_consistency(photo: Observations, restored: Observations, min_points: 
         return out
     ratio = [rc / pc for rc, pc in zip(r.contrast, p.contrast, strict=True)]
     out["contrast_ratio"] = ratio
-    flat = [c for c, x in zip("RGB", ratio, strict=True) if x < MIN_CONTRAST_SHARE]
+    col = restored.colour[keep]
+    out["clipped"] = [float(np.mean((col[:, k] <= CLIP_LOW) | (col[:, k] >= CLIP_HIGH))) for k in range(3)]
+    flat = [k for k in range(3) if ratio[k] < MIN_CONTRAST_SHARE]
     if flat:
-        out["reason"] = (f"the restored colours lost their contrast in channel {', '.join(flat)} (below "
-                         f"{MIN_CONTRAST_SHARE:.0%} of the photos'): a flattened image would score as consistent")
+        out["reason"] = ("the restored colours lost their contrast in channel " + ", ".join(
+            f"{'RGB'[k]} ({ratio[k]:.0%} of the photos', {out['clipped'][k]:.0%} of its sightings clipped to 0 or 1)"
+            for k in flat) + f": below {MIN_CONTRAST_SHARE:.0%}, a flattened or saturated image would score as "
+            "consistent")
         return out
     out["photo_score"] = float(np.mean(p.score))  # type: ignore[arg-type]  # no None: every contrast > 0
     out["restored_score"] = float(np.mean(r.score))  # type: ignore[arg-type]

@@ -138,6 +138,10 @@ def _kpis(r: dict) -> str:
              ("LPIPS", fmt(t["lpips"], 3))]
     if rest is not None and not no_water_removed(r):
         items.append(("restored J PSNR vs truth", f"{fmt(rest['restored']['psnr'])} dB"))
+    c = r.get("consistency") or {}
+    if c.get("defined"):  # the truth-free restoration score (section "Your photos, de-watered")
+        items.append(("colour change with distance", f"{fmt(100 * c['restored_score'], 0)} % "
+                                                     f"(photos {fmt(100 * c['photo_score'], 0)} %)"))
     items += [("Gaussians", r["model"]["n_gaussians"]), ("total time", f"{fmt(r['timings']['total_s'], 0)} s")]
     return '<div class="head">' + "".join(f'<div class="kpi"><span class="muted">{escape(k)}</span>'
                                           f"<b>{fmt(v) if not isinstance(v, str) else escape(v)}</b></div>"

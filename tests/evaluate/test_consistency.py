@@ -77,7 +77,10 @@ def test_a_constant_restoration_is_undefined_not_perfect():
     squashed = photo.colour.copy()
     squashed[:, 2] = 0.5 + 0.1 * (squashed[:, 2] - 0.5)
     res = colour_consistency(photo, Observations(point, r, squashed))
-    assert not res["defined"] and "channel B" in res["reason"]
+    assert not res["defined"] and "channel B (10% of the photos', 0% of its sightings clipped" in res["reason"]
+    saturated = np.clip(photo.colour * [1.0, 1.0, 20.0], 0, 1)  # blue amplified into the clip
+    res = colour_consistency(photo, Observations(point, r, saturated))
+    assert not res["defined"] and res["clipped"][2] > 0.9 and "channel B" in res["reason"]
 
 
 def test_outlier_points_do_not_pull_the_line():

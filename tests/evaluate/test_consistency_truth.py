@@ -14,10 +14,10 @@ from pipeline.synth.procedural import generate_scene
 def test_true_water_scores_best(preset, tmp_path):
     root = generate_scene(SynthConfig(views=6, width=64, height=48, preset=preset, seed=2), tmp_path / preset)
     res = scene_consistency(root, beta_scales=(1.0, 0.5, 2.0))
-    assert all(r["defined"] for r in res.values()), {k: r["reason"] for k, r in res.items()}
+    assert res["photo"]["defined"] and res["x1"]["defined"], res["x1"]["reason"]
     assert res["photo"]["n_points"] > 1000
-    true, half, double = (res[k]["share"] for k in ("x1", "x0.5", "x2"))
-    # measured (64x48, seed 2): true water 0.08 (clear) / 0.05 (medium) / 0.10 (turbid) of the photos' change;
-    # β halved 0.49-0.53, doubled 1.1-2.7
+    true = res["x1"]["share"]
     assert true < 0.2
-    assert true < 0.5 * min(half, double)
+    for wrong in ("x0.5", "x2"):  # worse by far, or refused: a channel saturated or flattened by the wrong water
+        r = res[wrong]
+        assert (r["defined"] and true < 0.5 * r["share"]) or (not r["defined"] and "lost their contrast" in r["reason"])
