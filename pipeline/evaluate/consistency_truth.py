@@ -21,16 +21,15 @@ from pipeline.restore.dewater import dewater_reference
 from pipeline.restore.records import MediumMaps
 from pipeline.scene.images import read_image
 from pipeline.scene.records import Scene, View, ray_length_factor
-
-FAR_DEPTH_M = 999.0  # the generator writes 1000 m where a ray hits nothing (pipeline.synth.ground_truth)
-
+from pipeline.synth.ground_truth import FAR_DEPTH_M, PINHOLE_DIR
+from pipeline.synth.water import TRUE_WATER_FILE
 
 UNCAPPED = 1e6  # a gain cap no pixel reaches: the plain J = (I − B)/A
 
 
 def truth_restoration(photo: np.ndarray, depth: np.ndarray, view: View, water: dict, beta_scale: float = 1.0,
                       max_gain: float = UNCAPPED) -> np.ndarray:
-    """``photo`` [H, W, 3] restored with the scene's true water (``water.json``), β_D and β_B times
+    """``photo`` [H, W, 3] restored with the scene's true water (``TRUE_WATER_FILE``), β_D and β_B times
     ``beta_scale``, at the true depth [H, W] (camera z, metres), each channel's gain at most ``max_gain``
     (default: none; the restorer's own cap, 8, under-corrects far red in turbid water), quantised to 8 bits like
     a restored file. [H, W, 3] float in [0, 1]"""
@@ -51,10 +50,9 @@ def scene_consistency(root: str | Path, beta_scales: Sequence[float] = (1.0, 0.5
     import json
 
     from pipeline.scene.loader import load_scene
-    from pipeline.synth.ground_truth import PINHOLE_DIR
 
     root = Path(root)
-    water = json.loads((root / "water.json").read_text())
+    water = json.loads((root / TRUE_WATER_FILE).read_text())
     geo = root / PINHOLE_DIR if (root / PINHOLE_DIR).is_dir() else root
     scene: Scene = load_scene(geo)
     photos = [read_image(geo / "images" / v.name) for v in scene.views]
