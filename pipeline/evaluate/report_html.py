@@ -116,9 +116,12 @@ def _consistency(c: dict | None) -> str:
     html = (f"<p><b>Colour agreement across distances (no ground truth needed):</b> between the survey's near and "
             f"far sightings ({fmt(c['range_ratio'], 2)}x the range), the colour of the same seabed point changes by "
             f"{fmt(100 * c['restored_score'], 0)} % of the colour differences between seabed points in the restored "
-            f"photos (the photos: {fmt(100 * c['photo_score'], 0)} %), so the restoration leaves "
-            f"{fmt(100 * c['share'], 0)} % of the photos' change with distance; from {c['n_points']} sparse points "
-            f"seen at clearly different ranges ({c['n_sightings']} sightings).</p>")
+            f"photos (the photos: {fmt(100 * c['photo_score'], 0)} %): "
+            + (f"the restoration removed {fmt(100 * (1 - c['share']), 0)} % of the photos' change with distance"
+               if c["share"] < 1 else f"<span class=warn>the restoration added {fmt(100 * (c['share'] - 1), 0)} % "
+                                      f"to the photos' change with distance</span>")
+            + f"; from {c['n_points']} sparse points seen at clearly different ranges ({c['n_sightings']} "
+              f"sightings).</p>")
     rows = [[name, 100 * p["score"][k], 100 * q["score"][k], q["contrast"][k] / p["contrast"][k]]
             for k, name in enumerate(("red", "green", "blue"))]
     return html + table(["channel", "photos: change with distance (%)", "restored (%)",
