@@ -124,3 +124,14 @@ def test_sightings_are_carried_into_the_distorted_photo():
     xy = np.stack([cam.fx * rays[:, 0] + cam.cx, cam.fy * rays[:, 1] + cam.cy], 1)
     back = photo_positions(view, Sightings(np.arange(4), xy / 2, cam.width // 2), lens)  # tracks at half size
     np.testing.assert_allclose(back, uv, atol=1e-6)
+
+
+def test_the_report_says_why_a_job_has_no_score():
+    from pipeline.evaluate.report import consistency_of
+
+    assert consistency_of(None)["reason"].startswith("the job has no restored photos")
+    assert consistency_of({"restored": 0, "note": "mode 3dgs models no water"}) == {
+        "defined": False, "reason": "mode 3dgs models no water"}
+    assert "re-run it" in consistency_of({"restored": 3, "views": []})["reason"]  # restored before the score existed
+    block = {"defined": True, "reason": None, "share": 0.2}
+    assert consistency_of({"restored": 3, "consistency": block}) is block
