@@ -106,6 +106,7 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
                                      "units": "1/m (B_inf: linear intensity)"}
     model["water_coefficients"] = water_coefficients(medium, scale)
     train = _read_json(layout.train_result) or {}
+    restore = _read_json(layout.restore_result)
     water = layout.classify_written  # a job folder from before the classifier's file was renamed: the legacy one
     report = {
         "schema_version": SCHEMA_VERSION,
@@ -126,11 +127,26 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "config": ev.get("config", {}),
         "outputs": {f: sum(1 for p in layout.render_folder(f).glob("*.png")) for f in RENDER_FOLDERS
                     if layout.render_folder(f).is_dir()},
-        "restore": _read_json(layout.restore_result),
+        "restore": None if restore is None else {k: v for k, v in restore.items() if k != "consistency"},
+        "consistency": consistency_of(restore),  # restore.json's, lifted to the top
         "input": input_summary(job, options),
         "sfm": sfm_summary(job),
     }
     return json_safe(relative_paths(report, job))
+
+
+def consistency_of(restore: dict | None) -> dict[str, Any]:
+    """The restored photos' colour consistency across distances (``pipeline.restore.consistency``, computed by
+    the restore stage into restore.json), or an undefined block saying why there is none."""
+    if restore is None:
+        why = "the job has no restored photos (it ran before the restore stage existed)"
+    elif restore.get("restored", 0) == 0:
+        why = restore.get("note") or "no photo was restored"
+    elif isinstance(restore.get("consistency"), dict):
+        return restore["consistency"]
+    else:
+        why = "the restore stage ran before the score existed (re-run it to compute it)"
+    return {"defined": False, "reason": why}
 
 
 SFM_FIELDS = ("registered", "total", "mean_reproj_error_px", "num_points3D", "matcher", "pairs_matched", "loop_pairs",

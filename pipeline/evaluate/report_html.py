@@ -92,6 +92,7 @@ def _restored_photos(r: dict, pics: Pictures) -> str:
     if rs.get("not_restored"):
         html += ("<p class=warn>Not restored: " + escape(", ".join(f"{x['name']} ({x['reason']})"
                                                                   for x in rs["not_restored"])) + "</p>")
+    html += _consistency(r.get("consistency"))
     truth = rs.get("truth")
     if truth:
         rows = [[label, truth[k]["restored_psnr"], truth[k]["render_psnr"], truth[k]["photo_psnr"],
@@ -103,6 +104,28 @@ def _restored_photos(r: dict, pics: Pictures) -> str:
                           "restored edge offset (px)", "render edge offset (px)"], rows, 3))
     return html + "".join(f"<p class=muted>{escape(name)}</p>" + _figures(cells, wide=2)
                           for name, cells in pics.originals)
+
+
+def _consistency(c: dict | None) -> str:
+    """The truth-free score (``pipeline.evaluate.consistency``): one plain sentence, the per-channel numbers."""
+    if not c:
+        return ""
+    if not c.get("defined"):
+        return f"<p class=muted>Colour agreement across distances: not measured ({escape(c.get('reason') or '')}).</p>"
+    p, q = c["photo"], c["restored"]
+    html = (f"<p><b>Colour agreement across distances (no ground truth needed):</b> between the survey's near and "
+            f"far sightings ({fmt(c['range_ratio'], 2)}x the range), the colour of the same seabed point changes by "
+            f"{fmt(100 * c['restored_score'], 0)} % of the colour differences between seabed points in the restored "
+            f"photos (the photos: {fmt(100 * c['photo_score'], 0)} %): "
+            + (f"the restoration removed {fmt(100 * (1 - c['share']), 0)} % of the photos' change with distance"
+               if c["share"] < 1 else f"<span class=warn>the restoration added {fmt(100 * (c['share'] - 1), 0)} % "
+                                      f"to the photos' change with distance</span>")
+            + f"; from {c['n_points']} sparse points seen at clearly different ranges ({c['n_sightings']} "
+              f"sightings).</p>")
+    rows = [[name, 100 * p["score"][k], 100 * q["score"][k], q["contrast"][k] / p["contrast"][k]]
+            for k, name in enumerate(("red", "green", "blue"))]
+    return html + table(["channel", "photos: change with distance (%)", "restored (%)",
+                         "restored / photo contrast"], rows, 1)
 
 
 def no_water_removed(r: dict) -> bool:
@@ -121,6 +144,10 @@ def _kpis(r: dict) -> str:
              ("LPIPS", fmt(t["lpips"], 3))]
     if rest is not None and not no_water_removed(r):
         items.append(("restored J PSNR vs truth", f"{fmt(rest['restored']['psnr'])} dB"))
+    c = r.get("consistency") or {}
+    if c.get("defined"):  # the truth-free restoration score (section "Your photos, de-watered")
+        items.append(("colour change with distance", f"{fmt(100 * c['restored_score'], 0)} % "
+                                                     f"(photos {fmt(100 * c['photo_score'], 0)} %)"))
     items += [("Gaussians", r["model"]["n_gaussians"]), ("total time", f"{fmt(r['timings']['total_s'], 0)} s")]
     return '<div class="head">' + "".join(f'<div class="kpi"><span class="muted">{escape(k)}</span>'
                                           f"<b>{fmt(v) if not isinstance(v, str) else escape(v)}</b></div>"

@@ -12,8 +12,10 @@ from pipeline.job.options import JobOptions, StageContext
 
 def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     """One photo at a time (a frame is restored in row bands: bounded memory at any size); cancellable between
-    photos. A photo SfM did not register has no pose and is listed as not restored. With ground truth (a
-    generated scene) the restored photos are scored at full resolution (:mod:`pipeline.restore.truth`)."""
+    photos. A photo SfM did not register has no pose and is listed as not restored. Every job's restored photos
+    are scored without truth, by how well the same seabed keeps its colour across distances
+    (:mod:`pipeline.restore.consistency`); with ground truth (a generated scene) also against the truth at full
+    resolution (:mod:`pipeline.restore.truth`)."""
     import logging
     import shutil
     import time
@@ -71,6 +73,9 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
            "format": opts.restore_format, "seconds": round(time.perf_counter() - t_all, 3), "views": per_view,
            "not_restored": [{"name": n, "reason": split.get(n, "SfM did not register it (no pose)")}
                             for n in sorted(photos - registered)]}
+    from pipeline.restore.consistency import restored_consistency
+
+    res["consistency"] = restored_consistency(job, {v["name"]: v["file"] for v in per_view})  # no truth needed
     if gt is not None:
         from pipeline.restore.truth import score_restored
 

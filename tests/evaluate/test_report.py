@@ -82,6 +82,12 @@ def test_report_json_follows_its_schema_and_holds_real_numbers(job, record_prope
     assert tm["train_iterations_per_s"] > 0 and tm["render_ms_per_view"]["median"] > 0
     assert r["model"]["n_gaussians"] == results["train"]["n_gaussians"] > 0
     assert r["outputs"] == {f: 12 for f in ("restored", "with_water", "attenuation", "backscatter", "depth")}
+    c = r["consistency"]  # the truth-free score, on the restored files at the sparse model's sightings
+    record_property("consistency_share", c["share"])
+    assert c["defined"] and c["reason"] is None and c["n_views"] == 12 and c["n_points"] >= 30
+    assert c["range_ratio"] > 1.1 and c["photo_score"] > 0 and c["share"] == pytest.approx(
+        c["restored_score"] / c["photo_score"])
+    assert "consistency" not in r["restore"]  # lifted to the top, not repeated
 
 
 def test_speed_vs_error_is_increasing_in_time_and_ends_at_the_final_model(job):
@@ -207,6 +213,8 @@ def test_report_says_what_happened(job, tmp_path):
     html3 = copy.report_html.read_text()
     assert "No water was removed" in html3 and "probe: the water changes nothing measurable" in html3
     assert f"No photo was restored.</b> {NOTHING_TO_RESTORE}" in html3 and r3["restore"]["restored"] == 0
+    assert r3["consistency"] == {"defined": False, "reason": NOTHING_TO_RESTORE}
+    assert "Colour agreement across distances (no ground truth needed)" in html
     assert "Held-out views: photo, model, ground truth" in html3
     for claim in ("<figcaption>restored J", "restored J PSNR", "restored J vs true"):  # shown for dualphys
         assert claim in html and claim not in html3, claim

@@ -58,6 +58,12 @@ def test_restored_photos_are_the_inputs_dewatered(job, record_property):
         assert p["restored_offset_px"] < 0.05 and p["restored_offset_px"] < p["render_offset_px"], (pool, p)
     # low confidence where the error is high, over the 14 training photos (the 2 held-out ones: -0.02)
     assert t["train"]["confidence_error_correlation"] < -0.1, t["train"]
+    # the truth-free score, on the distorted photos at SfM's sightings carried through the lens model: the same
+    # seabed agrees across distances far better after the restoration than in the photos
+    c = res["consistency"]
+    record_property("consistency", {k: c[k] for k in ("photo_score", "restored_score", "share", "n_points")})
+    assert c["defined"] and c["n_views"] == 16 and c["n_points"] >= 100, c
+    assert c["share"] < 1.0, c
 
 
 def test_render_again_as_16_bit_tiff(job, tmp_path):

@@ -1,0 +1,199 @@
+"""A truth-free score of a restoration: does the same seabed point keep its colour across distances?
+
+A restored surface point should have one colour from every view. Its photos differ because the water between
+differs: attenuation and veil grow with the range r. A restoration with the right water leaves no trend with
+range; one with the water wrong, or no restoration at all, leaves one that every point shares (what is left of
+the water is a function of range and of the point's colour, not of the point).
+
+The measure, per channel, from the sparse model's sightings (point p seen at range r_pk with colour c_pk):
+
+1. Each point seen at clearly different ranges (its farthest sighting at least ``MIN_POINT_RANGE_RATIO`` times
+   its nearest) gets its own least-squares slope g_p = dc/dr and mean colour c̄_p; the slope's precision is
+   S_p = Σ_k (r_pk − r̄_p)².
+2. What the water leaves is, to first order in the range, c = a(r)·J + b(r) (a gain and an offset that depend
+   on range only), so the slopes follow a line in the point's colour: g_p ≈ s_a·c̄_p + s_b. The line is fitted
+   over the points weighted by S_p and robustly (Tukey's biweight on the standardised residuals): points on
+   moving things, specular glints or mismatches do not pull it. The fitted slope ĝ_p is the systematic part of
+   the point's change with range; the scatter around it (noise, misplaced pixels) is left out.
+3. ``drift`` = RMS over the points of ĝ_p · Δr, Δr = the sightings' 90th − 10th range percentile: how much the
+   same seabed's colour changes between the survey's near and far sightings.
+4. ``contrast`` = the robust spread (1.4826·MAD) of the points' mean colours: how different the seabed's points
+   are from one another. ``score`` = drift / contrast.
+
+Why normalise by contrast: the score is then unchanged by any per-channel gain and offset of the whole
+restoration (c → α·c + γ scales drift and contrast alike), so a darker, brighter or flatter restoration is not
+rewarded for shrinking its colour changes, and a constant "restoration" (contrast 0) has no score: it is
+reported as undefined (``MIN_CONTRAST_SHARE``), never as perfect. Normalising by the colour level instead (log
+colour, relative change) rewards flattening towards a bright constant, and gives dark points (near the clip,
+amplified noise) the most weight. A plain median of the per-point slopes was rejected: in a channel where the
+veil is about as bright as the seabed, bright points darken and dark points brighten with range, and their
+median slope is near zero while the photos plainly disagree.
+
+The headline ``share``: the restoration's score over the photos' (mean over the channels each), below 1 when
+the restoration made the same seabed agree better across distances than the photos do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from pipeline.medium.estimate import Observations
+
+MIN_POINT_RANGE_RATIO = 1.1  # a point's farthest / nearest sighting: below this its slope says nothing
+MIN_POINTS = 30  # points seen at clearly different ranges needed for a score
+MIN_CONTRAST_SHARE = 0.25  # the restored colours' contrast below this share of the photos': undefined (flattened)
+TUKEY_C = 4.685  # Tukey's biweight cut-off in robust standard deviations (95 % efficiency at the normal)
+MAD_TO_SIGMA = 1.4826
+CLIP_LOW, CLIP_HIGH = 0.5 / 255, 254.5 / 255  # a restored value at 0 or 255 of 8 bits: clipped
+
+
+@dataclass
+class PointSlopes:
+    """Per point seen at clearly different ranges: its mean colour, its colour's slope against range, the
+    slope's precision S_p = Σ (r − r̄)², and its sightings' own spread around its mean (std, per channel)."""
+
+    point: np.ndarray  # [P] int
+    level: np.ndarray  # [P, 3]
+    slope: np.ndarray  # [P, 3] colour per scene unit
+    precision: np.ndarray  # [P]
+    spread: np.ndarray  # [P, 3]
+
+
+def point_slopes(obs: Observations, min_ratio: float = MIN_POINT_RANGE_RATIO) -> PointSlopes:
+    """Step 1 of the module docstring: each point's least-squares colour slope against range, for the points
+    whose sightings span at least ``min_ratio`` in range."""
+    if obs.point.size == 0:
+        return PointSlopes(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)))
+    pid, inv = np.unique(obs.point, return_inverse=True)
+    r = np.asarray(obs.range, np.float64)
+    c = np.asarray(obs.colour, np.float64).reshape(-1, 3)
+    n = np.bincount(inv, minlength=len(pid)).astype(np.float64)
+    rmin = np.full(len(pid), np.inf)
+    rmax = np.zeros(len(pid))
+    np.minimum.at(rmin, inv, r)
+    np.maximum.at(rmax, inv, r)
+    rbar = np.bincount(inv, r, len(pid)) / n
+    cbar = np.stack([np.bincount(inv, c[:, k], len(pid)) for k in range(3)], 1) / n[:, None]
+    dr = r - rbar[inv]
+    dc = c - cbar[inv]
+    srr = np.bincount(inv, dr * dr, len(pid))
+    src = np.stack([np.bincount(inv, dr * dc[:, k], len(pid)) for k in range(3)], 1)
+    scc = np.stack([np.bincount(inv, dc[:, k] ** 2, len(pid)) for k in range(3)], 1)
+    keep = (n >= 2) & (rmax >= min_ratio * np.maximum(rmin, 1e-12)) & (srr > 0)
+    slope = src[keep] / srr[keep, None]
+    spread = np.sqrt(scc[keep] / (n[keep, None] - 1))
+    return PointSlopes(pid[keep], cbar[keep], slope, srr[keep], spread)
+
+
+def robust_line(x: np.ndarray, y: np.ndarray, w: np.ndarray, iterations: int = 20) -> tuple[float, float]:
+    """Step 2: (s_a, s_b) of y ≈ s_a·x + s_b, weighted least squares with precisions ``w`` (y's variance ∝ 1/w),
+    iteratively reweighted by Tukey's biweight of the standardised residuals e·√w / σ, σ = 1.4826·MAD of e·√w.
+    x, y, w: [P]."""
+    X = np.stack([x, np.ones_like(x)], 1)
+    u = np.ones_like(x)
+    coef = np.zeros(2)
+    for _ in range(iterations):
+        ww = w * u
+        A = X.T @ (ww[:, None] * X)
+        if np.linalg.matrix_rank(A) < 2:  # every point at one colour: the offset alone
+            coef = np.array([0.0, float(np.sum(ww * y) / max(np.sum(ww), 1e-300))])
+        else:
+            coef = np.linalg.solve(A, X.T @ (ww * y))
+        z = (y - X @ coef) * np.sqrt(w)
+        sigma = MAD_TO_SIGMA * float(np.median(np.abs(z - np.median(z))))
+        if sigma <= 0:
+            break
+        t = z / (TUKEY_C * sigma)
+        u_new = np.where(np.abs(t) < 1, (1 - t * t) ** 2, 0.0)
+        if np.allclose(u_new, u):
+            break
+        u = u_new
+    return float(coef[0]), float(coef[1])
+
+
+@dataclass
+class ChannelDrift:
+    """Per channel (R, G, B): the fitted line of slope against colour, the drift over the range spread, the
+    points' contrast, the sightings' median spread around their point's mean, and score = drift / contrast."""
+
+    slope_gain: list[float]  # s_a, 1/scene-unit
+    slope_offset: list[float]  # s_b, colour per scene unit
+    drift: list[float]  # colour units over the range spread
+    contrast: list[float]  # colour units
+    spread: list[float]  # colour units: median over the points of their sightings' std
+    score: list[float | None]  # drift / contrast; None where the contrast is 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def channel_drift(s: PointSlopes, range_spread: float) -> ChannelDrift:
+    """Steps 2-4 of the module docstring for the points ``s``, with Δr = ``range_spread``."""
+    out: dict[str, list] = {k: [] for k in ("slope_gain", "slope_offset", "drift", "contrast", "spread",
+                                                   "score")}
+    for k in range(3):
+        a, b = robust_line(s.level[:, k], s.slope[:, k], s.precision)
+        g = a * s.level[:, k] + b
+        drift = float(np.sqrt(np.mean(g * g))) * range_spread
+        lv = s.level[:, k]
+        contrast = MAD_TO_SIGMA * float(np.median(np.abs(lv - np.median(lv))))
+        out["slope_gain"].append(a)
+        out["slope_offset"].append(b)
+        out["drift"].append(drift)
+        out["contrast"].append(contrast)
+        out["spread"].append(float(np.median(s.spread[:, k])))
+        out["score"].append(drift / contrast if contrast > 0 else None)  # type: ignore[arg-type]
+    return ChannelDrift(**out)
+
+
+def colour_consistency(photo: Observations, restored: Observations, min_points: int = MIN_POINTS) -> dict:
+    """The score of ``restored`` against ``photo``: the same sightings (point, range) with the photos' colours
+    and the restored photos' (both [0, 1], any channel order as long as it is the same).
+
+    Returns a JSON-able dict: ``defined`` (bool), ``reason`` (why not, else None), ``n_points`` (points seen at
+    clearly different ranges), ``n_sightings`` (their sightings), ``range_ratio`` (90th / 10th percentile of those
+    sightings' ranges), ``range_spread`` (Δr, scene units), ``photo`` and ``restored`` (:class:`ChannelDrift` as
+    dicts), ``photo_score`` and ``restored_score`` (mean over the channels of the score), ``share``
+    (restored_score / photo_score), ``contrast_ratio`` (restored / photo contrast, per channel), ``clipped`` (share
+    of the restored sightings at 0 or 1, per channel)."""
+    if photo.point.shape != restored.point.shape or not np.array_equal(photo.point, restored.point) \
+            or not np.allclose(photo.range, restored.range):
+        raise ValueError("photo and restored observations must be the same sightings (point and range)")
+    sp = point_slopes(photo)
+    sr = point_slopes(restored)
+    keep = np.isin(photo.point, sp.point)
+    out: dict = {"defined": False, "reason": None, "n_points": len(sp.point), "n_sightings": int(keep.sum()),
+                 "range_ratio": None, "range_spread": None, "photo": None, "restored": None, "photo_score": None,
+                 "restored_score": None, "share": None, "contrast_ratio": None, "clipped": None,
+                 "min_point_range_ratio": MIN_POINT_RANGE_RATIO}
+    if len(sp.point) < min_points:
+        out["reason"] = (f"only {len(sp.point)} sparse points were seen at clearly different ranges (farthest "
+                         f"sighting at least {MIN_POINT_RANGE_RATIO}x the nearest); {min_points} are needed")
+        return out
+    q10, q90 = np.percentile(photo.range[keep], [10, 90])
+    out["range_ratio"] = float(q90 / max(q10, 1e-12))
+    out["range_spread"] = float(q90 - q10)
+    p = channel_drift(sp, out["range_spread"])
+    r = channel_drift(sr, out["range_spread"])
+    out["photo"], out["restored"] = p.to_dict(), r.to_dict()
+    if min(p.contrast) <= 0:
+        out["reason"] = "the photos' colours at the sparse points do not differ in some channel (no contrast)"
+        return out
+    ratio = [rc / pc for rc, pc in zip(r.contrast, p.contrast, strict=True)]
+    out["contrast_ratio"] = ratio
+    col = restored.colour[keep]
+    out["clipped"] = [float(np.mean((col[:, k] <= CLIP_LOW) | (col[:, k] >= CLIP_HIGH))) for k in range(3)]
+    flat = [k for k in range(3) if ratio[k] < MIN_CONTRAST_SHARE]
+    if flat:
+        out["reason"] = ("the restored colours lost their contrast in channel " + ", ".join(
+            f"{'RGB'[k]} ({ratio[k]:.0%} of the photos', {out['clipped'][k]:.0%} of its sightings clipped to 0 or 1)"
+            for k in flat) + f": below {MIN_CONTRAST_SHARE:.0%}, a flattened or saturated image would score as "
+            "consistent")
+        return out
+    out["photo_score"] = float(np.mean(p.score))  # type: ignore[arg-type]  # no None: every contrast > 0
+    out["restored_score"] = float(np.mean(r.score))  # type: ignore[arg-type]
+    out["share"] = out["restored_score"] / out["photo_score"] if out["photo_score"] > 0 else None
+    out["defined"] = True
+    return out
