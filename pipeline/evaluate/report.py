@@ -133,7 +133,7 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
 
 
 SFM_FIELDS = ("registered", "total", "mean_reproj_error_px", "num_points3D", "matcher", "pairs_matched", "loop_pairs",
-              "outcome", "other_models", "unregistered")
+              "outcome", "other_models", "unregistered", "dropped", "retries")
 
 
 def input_summary(job: Path, options: dict) -> dict[str, Any]:
