@@ -148,18 +148,35 @@ def choose_matcher(names: list[str], cfg: SfmConfig) -> Literal["exhaustive", "s
 
 
 def is_numbered_sequence(names: list[str]) -> bool:
-    """True when every name is ``<prefix><number>.<ext>`` with one common prefix and, in plain name order
-    (the order COLMAP's sequential matcher uses), the numbers strictly increase (gaps allowed)."""
+    """True when every name is ``<prefix><number>.<ext>`` and, in plain name order (the order COLMAP's sequential
+    matcher uses), the numbers strictly increase (gaps allowed), with either one common prefix or a capture time
+    as the prefix: digits and separators only, never decreasing (``20230320_012253_000_0001.jpg``, AIMS
+    ReefScan's date_time_ms_counter names)."""
     parsed = []
     for n in sorted(names):
         m = re.fullmatch(r"(.*?)(\d+)", Path(n).stem)
         if m is None:
             return False
         parsed.append((m.group(1), int(m.group(2))))
-    if len(parsed) < 2 or len({p for p, _ in parsed}) != 1:
+    if len(parsed) < 2:
+        return False
+    prefixes = [p for p, _ in parsed]
+    if len(set(prefixes)) != 1 and not _is_time_prefix_sequence(prefixes):
         return False
     nums = [k for _, k in parsed]
     return all(b > a for a, b in zip(nums, nums[1:], strict=False))
+
+
+def _is_time_prefix_sequence(prefixes: list[str]) -> bool:
+    """Every prefix is digits and separators (``_-.T``) with the same digit count, and their digits read as one
+    number never decrease in name order: a timestamp of capture."""
+    if not all(re.fullmatch(r"[\d_\-.T]*\d[\d_\-.T]*", p) for p in prefixes):
+        return False
+    digits = [re.sub(r"\D", "", p) for p in prefixes]
+    if len({len(d) for d in digits}) != 1:
+        return False
+    times = [int(d) for d in digits]
+    return all(b >= a for a, b in zip(times, times[1:], strict=False))
 
 
 def run_sfm(

@@ -13,7 +13,7 @@ from pipeline.config import SfmConfig
 from pipeline.scene.align import align_to_reference
 from pipeline.scene.images import write_image
 from pipeline.scene.loader import load_scene
-from pipeline.sfm.recipe import run_sfm
+from pipeline.sfm.recipe import choose_matcher, is_numbered_sequence, run_sfm
 
 REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
 RUIE_B = REAL / "ruie-B571-B597"
@@ -74,3 +74,17 @@ def test_frames_no_rung_can_place_are_reported_with_their_reason(tmp_path: Path)
     assert reasons["B_577.jpg"] == "no features"
     assert reasons["B_578.jpg"].startswith("matched to no other frame"), reasons
     assert any("none placed more" in w for w in s.warnings)
+
+
+def test_capture_time_names_count_as_a_sequence() -> None:
+    """AIMS ReefScan names frames date_time_ms_counter: the prefix changes every second, yet name order is capture
+    order, so a long survey is matched sequentially (with loops), not as n^2/2 exhaustive pairs."""
+    aims = sorted(p.name for p in (REAL / "aims-erub-mt81" / "images").iterdir())
+    assert aims[:2] == ["20230320_012253_000_0001.jpg", "20230320_012253_000_0002.jpg"]
+    assert is_numbered_sequence(aims)
+    long_survey = [f"20230320_01{2253 + i // 2:04d}_000_{i + 1:04d}.jpg" for i in range(80)]
+    assert choose_matcher(long_survey, SfmConfig()) == "sequential"
+    # The counter must still increase, and a prefix must be a time (digits and separators, never decreasing).
+    assert not is_numbered_sequence(["20230320_012253_000_0002.jpg", "20230320_012254_000_0001.jpg"])
+    assert not is_numbered_sequence(["20230320_012254_000_0001.jpg", "20230320_01225_000_0002.jpg"])
+    assert not is_numbered_sequence([f"left_{i:03d}.jpg" for i in range(3)] + [f"right_{i:03d}.jpg" for i in (3, 4)])
