@@ -274,13 +274,18 @@ def run_sfm(
                 db_used, feature_dir = distorted / "database_stretched.db", stretched
             else:
                 attempt.stats = first_stats
-        if recs is None:
-            assert first_error is not None
-            raise first_error
         retries: list[dict[str, Any]] = []
-        if cfg.retry_dropped and recs[0].num_reg_images() < len(names):
+        if cfg.retry_dropped and (recs is None or recs[0].num_reg_images() < len(names)):
+            # No model at all (no initial pair passed COLMAP's thresholds) is where the ladder starts too.
             largest = max(max(wh) for wh in sizes)
-            recs, db_used = _retry_dropped(recs, names, db_used, feature_dir, distorted, attempt, largest, retries)
+            recs, db_used = _retry_dropped(recs or [], names, db_used, feature_dir, distorted, attempt, largest,
+                                           retries)  # fmt: skip
+        if not recs or recs[0].num_reg_images() < cfg.min_registered:
+            assert first_error is not None  # a model the first pass accepted is only ever replaced by a larger one
+            if retries:
+                first_error.args = (f"{first_error} (the retry ladder ran "
+                                    f"{', '.join(r['rung'] for r in retries)} and did not help either)",)  # fmt: skip
+            raise first_error
         rec = recs[0]
         registered = rec.num_reg_images()
         reproj = float(rec.compute_mean_reprojection_error())
@@ -490,18 +495,22 @@ def _retry_dropped(
        larger images for frames bigger than ``cfg.max_image_size`` (:data:`RETRY_SIZE_FACTOR`), match with guided
        matching, map, and extend the kept model with the relaxed thresholds.
 
-    A rung's models replace the current ones only when their largest places more frames. Each rung that ran is
-    appended to ``record``. Returns (the models, the database they came from)."""
+    A rung's models replace the current ones only when their largest places more frames. ``recs`` may be empty
+    (the first pass built no model): the ladder then starts at ``relaxed``. Each rung that ran is appended to
+    ``record``. Returns (the models, the database they came from)."""
     cfg, token = attempt.cfg, attempt.token
+
+    def placed(models: list) -> int:
+        return models[0].num_reg_images() if models else 0
 
     def rung(name: str, fn: Any) -> None:
         nonlocal recs, db
-        before, t = recs[0].num_reg_images(), time.perf_counter()
+        before, t = placed(recs), time.perf_counter()
         try:
             new, new_db = fn()
         except (NoModelError, TooFewRegisteredError):
             new, new_db = [], db
-        kept = bool(new) and new[0].num_reg_images() > before
+        kept = placed(new) > before
         record.append({"rung": name, "registered_before": before,
                        "registered": new[0].num_reg_images() if new else 0, "models": len(new),
                        "reproj_px": round(float(new[0].compute_mean_reprojection_error()), 4) if new else None,
@@ -537,15 +546,16 @@ def _retry_dropped(
             extended, _ = extend(models, new_db)
             if extended and extended[0].num_reg_images() > models[0].num_reg_images():
                 models = extended
-        if models[0].num_reg_images() > recs[0].num_reg_images():
+        if placed(models) > placed(recs):
             attempt.stats = again.stats  # the summary's pair counts describe the database the model came from
         return models, new_db
 
     ladder = (("extend", lambda: extend(recs, db)), ("relaxed", lambda: remap(db)), ("features", more_features))
     for name, fn in ladder:
-        if recs[0].num_reg_images() >= len(names):
+        if placed(recs) >= len(names):
             break
-        rung(name, fn)
+        if name != "extend" or recs:  # nothing to extend when the first pass built no model
+            rung(name, fn)
     return recs, db
 
 
