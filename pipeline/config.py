@@ -63,6 +63,9 @@ class SfmConfig:
     image_threads: int = -1
     seed: int = 0
     min_registered: int = 3  # fewer registered images than this is an error
+    # Frames left out of the kept model: try the retry ladder (relaxed mapper thresholds on the kept model, a relaxed
+    # remap, more features with guided matching; pipeline.sfm.recipe._retry_dropped) before reporting them dropped.
+    retry_dropped: bool = True
 
 
 C = TypeVar("C")

@@ -150,7 +150,7 @@ def consistency_of(restore: dict | None) -> dict[str, Any]:
 
 
 SFM_FIELDS = ("registered", "total", "mean_reproj_error_px", "num_points3D", "matcher", "pairs_matched", "loop_pairs",
-              "outcome", "other_models", "unregistered")
+              "outcome", "other_models", "unregistered", "dropped", "retries")
 
 
 def input_summary(job: Path, options: dict) -> dict[str, Any]:

@@ -164,7 +164,7 @@ def _inputs(r: dict) -> str:
         return html + "<p class=muted>No SfM summary (the sfm stage has not run).</p>"
     return html + (f"<p>SfM registered <b>{fmt(sfm['registered'])} of {fmt(sfm['total'])}</b> images, mean "
                    f"reprojection error {fmt(sfm['mean_reproj_error_px'], 3)} px, {fmt(sfm['num_points3D'])} "
-                   f"points, {fmt(sfm['matcher'])} matching.</p>" + _split(sfm))
+                   f"points, {fmt(sfm['matcher'])} matching.</p>" + _split(sfm) + _dropped(sfm))
 
 
 def _split(sfm: dict) -> str:
@@ -175,6 +175,15 @@ def _split(sfm: dict) -> str:
     parts = "; ".join(f"{m['registered']} images ({escape(', '.join(m['images']))})" for m in others)
     return (f"<p><b>The survey broke into {len(others) + 1} models</b>; only the largest was used. Left out: "
             f"{parts}.</p>")
+
+
+def _dropped(sfm: dict) -> str:
+    """Each frame the kept model does not place, with SfM's reason (``SfmSummary.dropped``)."""
+    dropped = sfm.get("dropped") or []
+    if not dropped:
+        return ""
+    items = "".join(f"<li>{escape(d['name'])}: {escape(d['reason'])}</li>" for d in dropped)
+    return f"<p>{len(dropped)} frame(s) left out of the model:</p><ul>{items}</ul>"
 
 
 def _schedule(s: dict | None) -> str:

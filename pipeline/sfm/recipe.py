@@ -2,7 +2,9 @@
 
 Recipe: decode-check every file (pycolmap silently drops unreadable ones) → SIFT on the CPU → exhaustive or
 sequential matching (:func:`choose_matcher`) → incremental mapping (seeded) → keep the model with the most
-registered images → undistort to PINHOLE. Output folder ``OUT``::
+registered images → undistort to PINHOLE. When readable frames are left out, the retry ladder
+(:func:`_retry_dropped`) tries COLMAP's remedies, cheapest first, and keeps a rung's model only if it places more
+frames; every frame still left out is reported with its reason (``SfmSummary.dropped``). Output folder ``OUT``::
 
     OUT/images/                              undistorted images (the names of the input files)
     OUT/sparse/0/{cameras,images,points3D}.bin   PINHOLE model (+ rigs.bin, frames.bin from pycolmap 4)
@@ -11,6 +13,7 @@ registered images → undistort to PINHOLE. Output folder ``OUT``::
     OUT/distorted/sparse/1, 2, ...           the other models when the survey broke apart (1 is the second
                                              largest, and so on), kept for separate processing
     OUT/distorted/vocab_tree.bin             sequential matching only: the survey's own tree for loops
+    OUT/distorted/database_features.db       the ladder's last rung only: more features, guided matching
 
 pycolmap "warns and returns an empty result" on hopeless input; here every such case is a typed
 :class:`SfmError` whose message says what to fix. Only SIFT is used: this pycolmap wheel aborts the whole
@@ -25,12 +28,13 @@ undistortion work on one image at a time and use ``image_threads`` (all cores): 
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import re
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -45,11 +49,13 @@ from pipeline.scene.images import (
     read_image,
     write_image,
 )
+from pipeline.sfm.dropped import DroppedFrame, drop_reasons
 from pipeline.sfm.loops import LOOP_NUM_IMAGES, LOOP_PERIOD, build_vocab_tree
+from pipeline.sfm.mapping import MIN_MODEL_IMAGES, RELAXED_MIN_NUM_MATCHES, map_models, mapper_options
 
 log = logging.getLogger(__name__)
 
-MIN_IMAGES = 3  # pycolmap never built a model from 2 views (docs/DECISIONS.md, "Numbers behind code comments")
+MIN_IMAGES = MIN_MODEL_IMAGES
 # Camera models SfM may refine before undistortion (all undistortable to PINHOLE by COLMAP).
 CAMERA_MODELS = (
     "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
@@ -110,6 +116,9 @@ class SfmSummary:
     pairs_matched: int = 0  # image pairs with geometrically verified inliers
     loop_pairs: int = 0  # of those, pairs further apart in name order than the sequential window (loops)
     phase_seconds: dict[str, float] = field(default_factory=dict)  # extract, vocab, match, map, undistort
+    dropped: list[DroppedFrame] = field(default_factory=list)  # each readable frame not in the kept model, and why
+    # The retry ladder's rungs that ran, in order: {rung, registered, models, reproj_px, seconds, kept}
+    retries: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def outcome(self) -> str:
@@ -139,18 +148,35 @@ def choose_matcher(names: list[str], cfg: SfmConfig) -> Literal["exhaustive", "s
 
 
 def is_numbered_sequence(names: list[str]) -> bool:
-    """True when every name is ``<prefix><number>.<ext>`` with one common prefix and, in plain name order
-    (the order COLMAP's sequential matcher uses), the numbers strictly increase (gaps allowed)."""
+    """True when every name is ``<prefix><number>.<ext>`` and, in plain name order (the order COLMAP's sequential
+    matcher uses), the numbers strictly increase (gaps allowed), with either one common prefix or a capture time
+    as the prefix: digits and separators only, never decreasing (``20230320_012253_000_0001.jpg``, AIMS
+    ReefScan's date_time_ms_counter names)."""
     parsed = []
     for n in sorted(names):
         m = re.fullmatch(r"(.*?)(\d+)", Path(n).stem)
         if m is None:
             return False
         parsed.append((m.group(1), int(m.group(2))))
-    if len(parsed) < 2 or len({p for p, _ in parsed}) != 1:
+    if len(parsed) < 2:
+        return False
+    prefixes = [p for p, _ in parsed]
+    if len(set(prefixes)) != 1 and not _is_time_prefix_sequence(prefixes):
         return False
     nums = [k for _, k in parsed]
     return all(b > a for a, b in zip(nums, nums[1:], strict=False))
+
+
+def _is_time_prefix_sequence(prefixes: list[str]) -> bool:
+    """Every prefix is digits and separators (``_-.T``) with the same digit count, and their digits read as one
+    number never decrease in name order: a timestamp of capture."""
+    if not all(re.fullmatch(r"[\d_\-.T]*\d[\d_\-.T]*", p) for p in prefixes):
+        return False
+    digits = [re.sub(r"\D", "", p) for p in prefixes]
+    if len({len(d) for d in digits}) != 1:
+        return False
+    times = [int(d) for d in digits]
+    return all(b >= a for a, b in zip(times, times[1:], strict=False))
 
 
 def run_sfm(
@@ -224,6 +250,7 @@ def run_sfm(
         ext.sift.max_num_features = cfg.max_num_features
         attempt = _Attempt(src_dir, names, camera_mode, reader, ext, matcher, cfg, cancellation_token, skipped)
         recs, first_error = None, None
+        db_used, feature_dir = distorted / "database.db", src_dir
         try:
             recs, names = attempt.run(distorted / "database.db", src_dir, distorted, images_dir)
         except (NoModelError, TooFewRegisteredError) as e:
@@ -244,10 +271,20 @@ def run_sfm(
                 warnings.append(f"low-contrast images: features were extracted from contrast-stretched copies "
                                 f"({recs2[0].num_reg_images()} registered, {n_before} without)")
                 recs, names = recs2, names2
+                db_used, feature_dir = distorted / "database_stretched.db", stretched
             else:
                 attempt.stats = first_stats
-        if recs is None:
-            assert first_error is not None
+        retries: list[dict[str, Any]] = []
+        if cfg.retry_dropped and (recs is None or recs[0].num_reg_images() < len(names)):
+            # No model at all (no initial pair passed COLMAP's thresholds) is where the ladder starts too.
+            largest = max(max(wh) for wh in sizes)
+            recs, db_used = _retry_dropped(recs or [], names, db_used, feature_dir, distorted, attempt, largest,
+                                           retries)  # fmt: skip
+        if not recs or recs[0].num_reg_images() < cfg.min_registered:
+            assert first_error is not None  # a model the first pass accepted is only ever replaced by a larger one
+            if retries:
+                first_error.args = (f"{first_error} (the retry ladder ran "
+                                    f"{', '.join(r['rung'] for r in retries)} and did not help either)",)  # fmt: skip
             raise first_error
         rec = recs[0]
         registered = rec.num_reg_images()
@@ -259,6 +296,16 @@ def run_sfm(
         attempt.phases["undistort"] = time.perf_counter() - t_und
 
     unregistered = [n for n in names if n not in placed]
+    min_matches = RELAXED_MIN_NUM_MATCHES if retries else mapper_options(cfg).min_num_matches
+    dropped = drop_reasons(db_used, names, placed, [(m.index, m.images) for m in others], min_matches)
+    if retries:
+        kept = [r["rung"] for r in retries if r["kept"]]
+        warnings.append(
+            f"{len(names) - retries[0]['registered_before']} frame(s) were left out at first; the retry ladder "
+            f"ran {', '.join(r['rung'] for r in retries)}"
+            + (f" and kept {kept[-1]}" if kept else ", none placed more")
+            + f": {registered} of {len(names)} registered"
+        )
     if others:
         warnings.append(
             f"the images formed {len(others) + 1} separate models that share no matches: the largest "
@@ -279,12 +326,15 @@ def run_sfm(
         seconds=time.perf_counter() - t0, matcher=matcher, skipped=skipped, warnings=warnings,
         unregistered=unregistered, other_models=others, pairs_matched=attempt.stats[0],
         loop_pairs=attempt.stats[1], phase_seconds={k: round(v, 3) for k, v in attempt.phases.items()},
+        dropped=dropped, retries=retries,
     )  # fmt: skip
     log.info("sfm: registered %d/%d, %d points, reprojection error %.3f px, %d pairs (%d loop), %.1f s (%s)",
              registered, total, summary.num_points3D, reproj, summary.pairs_matched, summary.loop_pairs,
              summary.seconds, ", ".join(f"{k} {v:.1f}" for k, v in summary.phase_seconds.items()))  # fmt: skip
     for w in warnings:
         log.warning("sfm: %s", w)
+    for d in dropped:
+        log.warning("sfm: dropped %s: %s", d.name, d.reason)
     return summary
 
 
@@ -362,6 +412,7 @@ class _Attempt:
     token: Any
     skipped: list[tuple[str, str]]
     phases: dict[str, float] = field(default_factory=dict)  # seconds per phase, summed over attempts
+    guided: bool = False  # guided matching (the retry ladder's feature rung)
     stats: tuple[int, int] = (0, 0)  # (verified pairs, loop pairs) of the last attempt's database
 
     def _timed(self, phase: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
@@ -398,7 +449,8 @@ class _Attempt:
             raise TooFewImagesError(_too_few_msg(len(names), images_dir), skipped=self.skipped)
         if self.matcher == "sequential" and self.cfg.loop_detection:
             self._timed("vocab", build_vocab_tree, db_path, distorted / "vocab_tree.bin", self.cfg.seed)
-        self._timed("match", _match, db_path, self.matcher, self.cfg, self.token, distorted / "vocab_tree.bin")
+        self._timed("match", _match, db_path, self.matcher, self.cfg, self.token, distorted / "vocab_tree.bin",
+                    guided=self.guided)
         self.stats = _pair_stats(db_path, self.cfg.sequential_overlap)
         if _num_inlier_matches(db_path) == 0:
             raise NoModelError(
@@ -407,7 +459,7 @@ class _Attempt:
                 f"very turbid water gives too few features.",
                 skipped=self.skipped,
             )
-        recs = self._timed("map", _map, db_path, self.src_dir, distorted, self.cfg, self.token)
+        recs = self._timed("map", map_models, db_path, self.src_dir, distorted, self.cfg, self.token)
         if not recs:
             raise NoModelError(
                 f"pycolmap could not start a 3D model from the {len(names)} images in {images_dir}: no "
@@ -422,6 +474,89 @@ class _Attempt:
                 skipped=self.skipped,
             )
         return recs, names
+
+
+# The retry ladder's feature rung: SIFT on images up to this many times cfg.max_image_size (never above the
+# frames' own size), with this many times the features and half the peak threshold (more, weaker features).
+RETRY_SIZE_FACTOR = 2
+RETRY_FEATURE_FACTOR = 2
+
+
+def _retry_dropped(
+    recs: list, names: list[str], db: Path, feature_dir: Path, distorted: Path, attempt: _Attempt, largest: int,
+    record: list[dict[str, Any]],
+) -> tuple[list, Path]:
+    """The retry ladder, run only while readable frames are left out of the kept model; cheapest rung first:
+
+    1. ``extend``: continue the kept model with the relaxed mapper thresholds (``pipeline.sfm.mapping``): frames
+       the first pass gave up on, and side models' frames that match it, are registered into it (mapping only);
+    2. ``relaxed``: map again from nothing with the relaxed thresholds (another initial pair, laxer registration);
+    3. ``features``: extract again with more features (:data:`RETRY_FEATURE_FACTOR`, half the peak threshold) on
+       larger images for frames bigger than ``cfg.max_image_size`` (:data:`RETRY_SIZE_FACTOR`), match with guided
+       matching, map, and extend the kept model with the relaxed thresholds.
+
+    A rung's models replace the current ones only when their largest places more frames. ``recs`` may be empty
+    (the first pass built no model): the ladder then starts at ``relaxed``. Each rung that ran is appended to
+    ``record``. Returns (the models, the database they came from)."""
+    cfg, token = attempt.cfg, attempt.token
+
+    def placed(models: list) -> int:
+        return models[0].num_reg_images() if models else 0
+
+    def rung(name: str, fn: Any) -> None:
+        nonlocal recs, db
+        before, t = placed(recs), time.perf_counter()
+        try:
+            new, new_db = fn()
+        except (NoModelError, TooFewRegisteredError):
+            new, new_db = [], db
+        kept = placed(new) > before
+        record.append({"rung": name, "registered_before": before,
+                       "registered": new[0].num_reg_images() if new else 0, "models": len(new),
+                       "reproj_px": round(float(new[0].compute_mean_reprojection_error()), 4) if new else None,
+                       "seconds": round(time.perf_counter() - t, 3), "kept": kept})  # fmt: skip
+        log.info("sfm retry %s: %s", name, record[-1])
+        if kept:
+            recs, db = new, new_db
+
+    def extend(models: list, database: Path) -> tuple[list, Path]:
+        seed = distorted / "_seed"
+        shutil.rmtree(seed, ignore_errors=True)
+        seed.mkdir()
+        try:
+            models[0].write(str(seed))
+            return attempt._timed("map", map_models, database, attempt.src_dir, distorted, cfg, token,
+                                  relaxed=True, start_from=seed), database  # fmt: skip
+        finally:
+            shutil.rmtree(seed, ignore_errors=True)
+
+    def remap(database: Path) -> tuple[list, Path]:
+        return attempt._timed("map", map_models, database, attempt.src_dir, distorted, cfg, token,
+                              relaxed=True), database  # fmt: skip
+
+    def more_features() -> tuple[list, Path]:
+        ext = copy.deepcopy(attempt.ext)  # pycolmap's options are mutable C++ objects
+        ext.max_image_size = max(cfg.max_image_size, min(largest, RETRY_SIZE_FACTOR * cfg.max_image_size))
+        ext.sift.max_num_features = RETRY_FEATURE_FACTOR * cfg.max_num_features
+        ext.sift.peak_threshold = attempt.ext.sift.peak_threshold / 2
+        again = replace(attempt, ext=ext, guided=True, skipped=[])
+        new_db = distorted / "database_features.db"
+        models, _ = again.run(new_db, feature_dir, distorted, attempt.src_dir)
+        if models[0].num_reg_images() < len(names):
+            extended, _ = extend(models, new_db)
+            if extended and extended[0].num_reg_images() > models[0].num_reg_images():
+                models = extended
+        if placed(models) > placed(recs):
+            attempt.stats = again.stats  # the summary's pair counts describe the database the model came from
+        return models, new_db
+
+    ladder = (("extend", lambda: extend(recs, db)), ("relaxed", lambda: remap(db)), ("features", more_features))
+    for name, fn in ladder:
+        if placed(recs) >= len(names):
+            break
+        if name != "extend" or recs:  # nothing to extend when the first pass built no model
+            rung(name, fn)
+    return recs, db
 
 
 def _stage_stretched(src_dir: Path, names: list[str], stage: Path) -> Path:
@@ -516,11 +651,12 @@ def _name_range(names: list[str]) -> str:
     return names[0] if len(names) == 1 else f"{names[0]} .. {names[-1]}"
 
 
-def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: Path) -> None:
+def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: Path, *, guided: bool = False) -> None:
     import pycolmap
 
     mopts = pycolmap.FeatureMatchingOptions()
     mopts.num_threads = cfg.num_threads
+    mopts.guided_matching = guided
     verify = pycolmap.TwoViewGeometryOptions()
     verify.ransac.random_seed = cfg.seed
     if matcher == "sequential":
@@ -538,31 +674,6 @@ def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: 
     else:
         pycolmap.match_exhaustive(db_path, matching_options=mopts, verification_options=verify,
                                   device=pycolmap.Device.cpu, cancellation_token=token)  # fmt: skip
-
-
-def _map(db_path: Path, image_dir: Path, distorted: Path, cfg: SfmConfig, token: Any) -> list:
-    """Incremental mapping: the models with registered images, largest first (ties: the first built)."""
-    import pycolmap
-
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = cfg.num_threads
-    opts.random_seed = cfg.seed
-    opts.mapper.random_seed = cfg.seed
-    opts.triangulation.random_seed = cfg.seed
-    # Default 10 would discard every model of a small set; we pick the largest model ourselves anyway.
-    opts.min_model_size = max(MIN_IMAGES, min(opts.min_model_size, cfg.min_registered))
-    tmp = distorted / "_models"
-    tmp.mkdir()
-    try:
-        recs = pycolmap.incremental_mapping(db_path, image_dir, tmp, options=opts, cancellation_token=token)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    recs = [recs[k] for k in sorted(recs) if recs[k].num_reg_images() > 0]
-    recs.sort(key=lambda r: -r.num_reg_images())  # stable: equal sizes keep the mapper's order
-    if len(recs) > 1:
-        log.info("sfm: %d separate models (%s images); keeping the largest", len(recs),
-                 ", ".join(str(r.num_reg_images()) for r in recs))  # fmt: skip
-    return recs
 
 
 def _undistort(model_dir: Path, image_dir: Path, out: Path, tmp: Path, cfg: SfmConfig, token: Any) -> None:

@@ -46,6 +46,11 @@ def test_two_unrelated_sites_give_two_models_largest_kept(tmp_path: Path) -> Non
     other = s.other_models[0]
     assert other.index == 1 and other.registered == 4 and other.images == b
     assert any("2 separate models" in w and "B_571.jpg .. B_574.jpg" in w for w in s.warnings)
+    # The retry ladder tried to place B in A's model and could not (nothing matches); each B frame says why.
+    assert [r["rung"] for r in s.retries] == ["extend", "relaxed", "features"]
+    assert not any(r["kept"] for r in s.retries)
+    side = "in a side model of 4 frames (distorted/sparse/1)"
+    assert [(d.name, d.reason) for d in s.dropped] == [(n, side) for n in b]
     kept = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     assert sorted(im.name for im in kept.images.values()) == a
     side = pycolmap.Reconstruction(str(out / "distorted" / "sparse" / "1"))
