@@ -65,6 +65,10 @@ class ProbeConfig:
     min_covered: float = 0.05
     relaxed_alpha: float = 0.5
     sh_degree: int = 0  # view-independent colour in every mode, so plain splatting cannot fake range-dependent colour
+    window: int = 9  # the race compares local means over squares this wide (of a <= max_width image): water changes
+    #                  a region's mean colour, a lens's blur or texture averaged at range does not (docs/DECISIONS.md)
+    min_measured_effect: float = 0.2  # water the points measured that outranks a lost race (real hazy B571:
+    #                                   0.46-0.66; generated scenes without water: 0.05-0.13)
 
 
 @dataclass
@@ -156,16 +160,16 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
       held-back PSNR. "About": within the probe's own run-to-run spread ``noise_db`` (measured on real and
       generated scenes, docs/DECISIONS.md); a margin below the noise would flip the mode between seeds and
       between overlapping subsets of the same site. Or, when that race is lost, the sparse points measured
-      the water before training (``measured_effect`` >= ``min_effect``): the race guards against invented
+      the water before training (``measured_effect`` >= ``min_measured_effect``): the race guards against invented
       water, and water measured from the points' colour change across ranges is not invented (on real hazy
       footage plain splatting won the far views by 1-4 dB while the points measured 0.46-0.66 of water).
 
     Water the medium barely learned in the probe (``effect`` < ``min_effect``) is still water when the classifier
-    calls it ``medium`` or ``turbid`` (:func:`classified_water`) and the sparse points could not measure it
-    (:func:`measurement_kind` is not ``measured``: a failed fit, or too little range spread); then only a race
-    lost by more than ``noise_db`` gives ``3dgs``. Where the points did measure weak water (a scene without
-    water seen over a wide range of distances), the measurement outranks the classifier, which has no "no water"
-    class and calls clear scenes ``medium``.
+    calls it ``medium`` or ``turbid`` (:func:`classified_water`) and the sparse points' fit failed
+    (:func:`measurement_kind`); then only a race lost by more than ``noise_db`` gives ``3dgs``. Where the fit held
+    (measured, or prior-dominated: the medium then starts from the water type's values and the probe's training
+    is what shrank it), the learned water decides: the classifier has no "no water" class and calls generated
+    scenes without water ``medium``.
 
     Then the simplest medium mode within ``margin_db`` of the best medium mode is chosen, else ``3dgs``.
     (Splatting can imitate water in the photos, so "3dgs is within the margin of the best" alone cannot show
@@ -184,9 +188,9 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
             return simplest, (f"{where}; the sparse points measured water before training ({measured:.3f} >= "
                               f"{cfg.min_effect:g}): the simplest medium mode. {detail}")
         typed = classified_water(water)
-        if simplest is not None and typed is not None and all(s.measurement != "measured" for s in media.values()):
-            return simplest, (f"{where}; the classifier calls the water {typed} and the sparse points could not "
-                              f"measure it: the simplest medium mode. {detail}")
+        if simplest is not None and typed is not None and any(s.measurement == "failed" for s in media.values()):
+            return simplest, (f"{where}; the classifier calls the water {typed} and the sparse points' fit failed: "
+                              f"the simplest medium mode. {detail}")
         return "3dgs", (f"{where}, and the sparse points do not measure water ({measured:.3f} < "
                         f"{cfg.min_effect:g}): the simplest mode. {detail}")
     learned = max((s.effect or 0.0 for s in media.values()), default=0.0)
@@ -201,11 +205,11 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
     if learned < cfg.min_effect:
         kinds = {s.measurement for s in media.values()}
         typed = classified_water(water)
-        if typed is not None and "measured" not in kinds:  # the points could not measure it, the images show it
+        if typed is not None and "failed" in kinds:  # the points' fit failed, the images show water
             probs = (water or {}).get("probabilities") or {}
             said = f"the classifier calls the water {typed} (p {probs.get(typed, float('nan')):.2f})"
             if best >= plain - cfg.noise_db:
-                return mode, (f"{said}, the sparse points could not measure it ({' / '.join(sorted(map(str, kinds)))})"
+                return mode, (f"{said}, the sparse points' fit failed (the report says why)"
                               f" and the medium learned little of it in the probe ({learned:.3f} < "
                               f"{cfg.min_effect:g}), but it predicts the held-back views as well as plain splatting "
                               f"(within the probe's noise, {cfg.noise_db:g} dB): a medium, not no water; {simplest}. "
@@ -218,14 +222,15 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
         return mode, (f"the scene has water ({learned:.3f} >= {cfg.min_effect:g}) that predicts the held-back "
                       f"views as well as plain splatting (within the probe's noise, {cfg.noise_db:g} dB); "
                       f"{simplest}. {detail}")
-    if measured >= cfg.min_effect:
+    if measured >= cfg.min_measured_effect:
         return mode, (f"the scene has water: learned {learned:.3f} and measured from the sparse points before "
-                      f"training {measured:.3f} (>= {cfg.min_effect:g}); plain splatting predicts the held-back "
-                      f"views {plain - best:.2f} dB better, which water the points measured cannot be blamed for "
-                      f"(real footage: exposure changes, moving animals); {simplest}. {detail}")
+                      f"training {measured:.3f} (>= {cfg.min_measured_effect:g}); plain splatting predicts the "
+                      f"held-back views {plain - best:.2f} dB better, which water the points measured cannot be "
+                      f"blamed for (real footage: exposure changes, moving animals); {simplest}. {detail}")
     return "3dgs", (f"the learned water ({learned:.3f}) predicts the held-back views worse than plain "
                     f"splatting by more than the probe's noise ({best:.2f} < {plain:.2f} - {cfg.noise_db:g} dB) "
-                    f"and the sparse points do not measure it ({measured:.3f} < {cfg.min_effect:g}). {detail}")
+                    f"and the sparse points do not measure enough of it ({measured:.3f} < "
+                    f"{cfg.min_measured_effect:g}). {detail}")
 
 
 def probe_config(base: TrainConfig, cfg: ProbeConfig, width: int, mode: str) -> TrainConfig:
@@ -247,9 +252,21 @@ def _render_held(trainer, views: Sequence[View]) -> list:
     return [trainer.outputs(v) for v in views]
 
 
-def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndarray]) -> dict[str, float]:
+def local_mean(x: np.ndarray, k: int) -> np.ndarray:
+    """Mean of ``x`` [H, W, ...] over a k x k square around each pixel (edges repeated); k odd."""
+    r = k // 2
+    pad = [(r, r), (r, r)] + [(0, 0)] * (x.ndim - 2)
+    c = np.pad(np.pad(np.asarray(x, np.float64), pad, mode="edge").cumsum(0).cumsum(1),
+               [(1, 0), (1, 0)] + [(0, 0)] * (x.ndim - 2))
+    h, w = x.shape[:2]
+    return (c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]) / (k * k)
+
+
+def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndarray], window: int = 1
+           ) -> dict[str, float]:
     """PSNR with water over the masked pixels of all held-back views (pooled) and, for a medium, its mean
-    attenuation 1 − A and backscatter B there."""
+    attenuation 1 − A and backscatter B there. With ``window`` > 1 the PSNR compares local means over
+    ``window`` x ``window`` squares, on pixels whose whole square is masked (``ProbeConfig.window``)."""
     from pipeline.evaluate.metrics import pooled_psnr
 
     att, bs = [], []
@@ -258,7 +275,14 @@ def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndar
             att.append(1.0 - out.A[m])
             bs.append(out.B[m])
     covered = sum(int(m.sum()) for m in masks)  # no pixel every mode covered: all modes tie at +inf
-    psnr = pooled_psnr([(out.I, t) for out, t in zip(outputs, targets, strict=True)], masks) if covered else math.inf
+    pairs = [(out.I, t) for out, t in zip(outputs, targets, strict=True)]
+    scored = list(masks)
+    if window > 1:
+        pairs = [(local_mean(a, window), local_mean(b, window)) for a, b in pairs]
+        scored = [local_mean(m.astype(np.float64), window) > 1 - 1e-9 for m in masks]
+        if not sum(int(m.sum()) for m in scored):  # no square wholly covered: score pixel by pixel
+            pairs, scored = [(out.I, t) for out, t in zip(outputs, targets, strict=True)], list(masks)
+    psnr = pooled_psnr(pairs, scored) if covered else math.inf
     res = {"psnr": psnr, "covered": covered / sum(m.size for m in masks)}
     if att:
         a, b = float(np.concatenate(att).mean()), float(np.concatenate(bs).mean())
@@ -339,7 +363,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
         masks = common_cover(outputs, modes, scored_alpha)
     scores: dict[str, ModeScore] = {}
     for mode in modes:
-        s = _score(outputs[mode], targets, masks)
+        s = _score(outputs[mode], targets, masks, cfg.window)
         scores[mode] = ModeScore(seconds=seconds[mode], coefficients=coefficients.get(mode, {}),
                                  measured_effect=measured.get(mode), measurement=kinds.get(mode), **s)
         log.info("probe %s: held-back PSNR %.2f dB%s (%.1f s)", mode, s["psnr"],
@@ -354,9 +378,14 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
              "seconds": round(time.perf_counter() - t_start, 2)}
     log.info("mode auto: %s (%s)", chosen, reason)
     return Selection(requested=requested, chosen=chosen, reason=reason,
-                     margin={"margin_db": cfg.margin_db, "min_effect": cfg.min_effect, "noise_db": cfg.noise_db},
+                     margin=_margins(cfg),
                      probe={m: s.to_json() for m, s in scores.items()}, probe_setup=setup,
                      water=_water_summary(water))
+
+
+def _margins(cfg: ProbeConfig) -> dict[str, float]:
+    return {"margin_db": cfg.margin_db, "min_effect": cfg.min_effect, "noise_db": cfg.noise_db,
+            "min_measured_effect": cfg.min_measured_effect, "window": cfg.window}
 
 
 def _water_summary(water: dict | None) -> dict | None:
@@ -385,7 +414,7 @@ def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: Tra
             return saved
     if len(scene.views) < cfg.min_views:
         sel = Selection(requested="auto", chosen="3dgs",
-                        margin={"margin_db": cfg.margin_db, "min_effect": cfg.min_effect, "noise_db": cfg.noise_db},
+                        margin=_margins(cfg),
                         reason=f"{len(scene.views)} training views are too few to hold some back for the probe "
                                f"(it needs {cfg.min_views}); the simplest mode", probe={},
                         probe_setup={"skipped": True}, water=_water_summary(water))

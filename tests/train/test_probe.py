@@ -17,7 +17,8 @@ from pipeline.scene.records import Camera, Scene, View
 from pipeline.scene.split import split_views
 from pipeline.synth.procedural import generate_scene
 from pipeline.train.budget import MIN_GAUSSIANS, scene_budget
-from pipeline.train.probe import ModeScore, ProbeConfig, common_cover, decide, holdout_split
+from pipeline.train.probe import ModeScore, ProbeConfig, common_cover, decide, holdout_split, local_mean
+from pipeline.train.probe import _score as _score_held
 from pipeline.train.resolve import resolve_train_config
 from pipeline.train.stage import select_mode
 from pipeline.water import classify
@@ -52,9 +53,8 @@ def test_rule_picks_the_simplest_mode_the_scene_needs():
 
 def test_water_the_points_could_not_measure_is_not_no_water():
     """Issue 39: real green water whose sparse-point fit failed (B∞ on its bound) left the medium to learn 0.08 of
-    water in the probe, and auto said "no water" although the classifier called it medium (p 0.96). Unless the
-    points measured the water's weakness, the classifier's water stands and only a race lost by more than the
-    probe's noise gives plain splatting."""
+    water in the probe, and auto said "no water" although the classifier called it medium (p 0.96). After a failed
+    fit the classifier's water stands and only a race lost by more than the probe's noise gives plain splatting."""
     cfg = ProbeConfig(margin_db=0.3, min_effect=0.1, noise_db=0.3)
     green = {"water_type": "medium", "probabilities": {"clear": 0.0, "medium": 0.96, "turbid": 0.04}}
 
@@ -63,17 +63,48 @@ def test_water_the_points_could_not_measure_is_not_no_water():
                 "homogeneous": dataclasses.replace(_score(medium, 0.079), measurement=kind),
                 "dualphys": dataclasses.replace(_score(medium - 0.1, 0.07), measurement=kind)}
 
-    for kind in ("failed", "prior"):
+    mode, reason = decide(scores("failed"), cfg, green)
+    assert mode == "homogeneous" and "calls the water medium (p 0.96)" in reason, reason
+    mode, reason = decide(scores("failed", medium=24.5), cfg, green)  # lost by 0.5 dB > the noise
+    assert mode == "3dgs" and "more than the probe's noise" in reason, reason
+    # a fit that held (measured, or prior-dominated and shrunk by the probe's training) outranks the classifier,
+    # which calls generated scenes without water medium
+    for kind in ("measured", "prior"):
         mode, reason = decide(scores(kind), cfg, green)
-        assert mode == "homogeneous" and "calls the water medium (p 0.96)" in reason, reason
-        mode, reason = decide(scores(kind, medium=24.5), cfg, green)  # lost by 0.5 dB > the noise
-        assert mode == "3dgs" and "more than the probe's noise" in reason, reason
-    # measured weak water (a scene without water, wide range spread) outranks the classifier
-    mode, reason = decide(scores("measured"), cfg, green)
-    assert mode == "3dgs" and "no water worth modelling" in reason
+        assert mode == "3dgs" and "no water worth modelling" in reason
     # the classifier saying it does not know, or clear water, gives it no say
     for other in ({**green, "known": False}, {**green, "water_type": "clear"}, None):
         assert decide(scores("failed"), cfg, other)[0] == "3dgs"
+
+
+def test_the_race_scores_local_means_so_blur_is_not_water():
+    """A far view blurred by the lens (or its texture averaged at range) keeps every region's mean colour; water
+    does not. Pixel by pixel, a sharp rendering of a blurred photo loses to a veil that flattens the texture as
+    the blur did; compared over 9 x 9 squares it wins, as it should without water."""
+
+    class Out:
+        def __init__(self, img):
+            self.I, self.A, self.B = img, None, None
+
+    rng = np.random.default_rng(0)
+    sharp = np.repeat(rng.uniform(0.2, 0.8, (12, 16)).repeat(8, 0).repeat(8, 1)[..., None], 3, -1)
+    sharp += rng.normal(0, 0.15, sharp.shape)  # fine texture
+    photo = local_mean(sharp, 5)  # the lens blurred it
+    veiled = 0.6 * sharp + 0.4 * 0.5 + 0.03  # contrast lowered by a grey veil, a little too bright
+    masks = [np.ones(sharp.shape[:2], bool)]
+    pixel = {k: _score_held([Out(v)], [photo], masks, 1)["psnr"] for k, v in (("sharp", sharp), ("veil", veiled))}
+    local = {k: _score_held([Out(v)], [photo], masks, 9)["psnr"] for k, v in (("sharp", sharp), ("veil", veiled))}
+    assert pixel["veil"] > pixel["sharp"], pixel
+    assert local["sharp"] > local["veil"] + 3, local
+
+
+def test_weak_measured_water_does_not_outweigh_a_lost_race():
+    cfg = ProbeConfig()
+    lost = {"3dgs": _score(23.4), "homogeneous": dataclasses.replace(_score(22.9, 0.13), measured_effect=0.12),
+            "dualphys": dataclasses.replace(_score(22.9, 0.13), measured_effect=0.12)}
+    assert decide(lost, cfg)[0] == "3dgs"  # a generated scene without water measures 0.05-0.13
+    hazy = {m: dataclasses.replace(s, measured_effect=0.5) for m, s in lost.items()}
+    assert decide(hazy, cfg)[0] == "homogeneous"  # real hazy B571 measures 0.46-0.66
 
 
 def test_rule_without_cover_rests_on_the_measured_water():
