@@ -496,7 +496,7 @@ def _retry_dropped(
        matching, map, and extend the kept model with the relaxed thresholds.
 
     A rung's models replace the current ones only when their largest places more frames. ``recs`` may be empty
-    (the first pass built no model): the ladder then starts at ``relaxed``. Each rung that ran is appended to
+    (the first pass built no model): the ladder then runs ``relaxed`` alone. Each rung that ran is appended to
     ``record``. Returns (the models, the database they came from)."""
     cfg, token = attempt.cfg, attempt.token
 
@@ -554,8 +554,12 @@ def _retry_dropped(
     for name, fn in ladder:
         if placed(recs) >= len(names):
             break
-        if name != "extend" or recs:  # nothing to extend when the first pass built no model
-            rung(name, fn)
+        # Nothing to extend without a model. Re-extracting features costs minutes on large frames (every third
+        # AIMS Erub frame: 12.5 min, still no model), so it runs only for a survey that did build a model:
+        # input that no relaxed mapping could start from is not made hopeful by more features.
+        if (name == "extend" or name == "features") and not recs:
+            continue
+        rung(name, fn)
     return recs, db
 
 
