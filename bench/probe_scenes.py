@@ -52,6 +52,8 @@ def probe_scene(root: Path) -> dict:
             "psnr": {m: round(s["psnr"], 2) for m, s in probe.items()},
             "learned": homog.get("effect"), "measured": homog.get("measured_effect"),
             "measurement": homog.get("measurement"), "reason": sel["reason"],
+            "scored_alpha": sel.get("probe_setup", {}).get("scored_alpha"),
+            "covered": {m: s.get("covered") for m, s in probe.items()},
             "seconds": round(time.perf_counter() - t0, 1)}
 
 

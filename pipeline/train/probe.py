@@ -184,15 +184,15 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
         where = (f"the fitted views' Gaussians cover only {100 * covered:.1f} % of the held-back pixels "
                  f"(< {100 * cfg.min_covered:g} %), so the race between the modes is inconclusive")
         simplest = next((m for m in MODES if m in media), None)
-        if simplest is not None and measured >= cfg.min_effect:
+        if simplest is not None and measured >= cfg.min_measured_effect:
             return simplest, (f"{where}; the sparse points measured water before training ({measured:.3f} >= "
-                              f"{cfg.min_effect:g}): the simplest medium mode. {detail}")
+                              f"{cfg.min_measured_effect:g}): the simplest medium mode. {detail}")
         typed = classified_water(water)
         if simplest is not None and typed is not None and any(s.measurement == "failed" for s in media.values()):
             return simplest, (f"{where}; the classifier calls the water {typed} and the sparse points' fit failed: "
                               f"the simplest medium mode. {detail}")
-        return "3dgs", (f"{where}, and the sparse points do not measure water ({measured:.3f} < "
-                        f"{cfg.min_effect:g}): the simplest mode. {detail}")
+        return "3dgs", (f"{where}, and the sparse points do not measure enough water ({measured:.3f} < "
+                        f"{cfg.min_measured_effect:g}): the simplest mode. {detail}")
     learned = max((s.effect or 0.0 for s in media.values()), default=0.0)
     plain = scores["3dgs"].psnr if "3dgs" in scores else -math.inf
     best_medium = max(media, key=lambda m: media[m].psnr, default=None)
@@ -262,10 +262,22 @@ def local_mean(x: np.ndarray, k: int) -> np.ndarray:
     return (c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]) / (k * k)
 
 
+def surface_colour(out) -> np.ndarray:
+    """What a mode predicts for the surface at each pixel, whatever its coverage: the colour over alpha, with the
+    water between (J·A + α·B) / α in medium modes, J / α in plain splatting. Scored this way, a pixel the fitted
+    views half cover is no contest between plain splatting's black background and the medium's veil B∞ filling
+    the rest (a generated scene without water, its far views scored at alpha 0.5: the medium won by 0.7-5 dB)."""
+    a = np.maximum(np.asarray(out.alpha, np.float64), 1e-3)[..., None]
+    if out.A is None or out.B is None:
+        return np.clip(out.J / a, 0.0, 1.0)
+    return np.clip((out.J * out.A + a * out.B) / a, 0.0, 1.0)
+
+
 def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndarray], window: int = 1
            ) -> dict[str, float]:
-    """PSNR with water over the masked pixels of all held-back views (pooled) and, for a medium, its mean
-    attenuation 1 − A and backscatter B there. With ``window`` > 1 the PSNR compares local means over
+    """PSNR with water of the predicted surface colour (:func:`surface_colour`) over the masked pixels of all
+    held-back views (pooled) and, for a medium, its mean attenuation 1 − A and backscatter B there. With
+    ``window`` > 1 the PSNR compares local means over
     ``window`` x ``window`` squares, on pixels whose whole square is masked (``ProbeConfig.window``)."""
     from pipeline.evaluate.metrics import pooled_psnr
 
@@ -275,13 +287,13 @@ def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndar
             att.append(1.0 - out.A[m])
             bs.append(out.B[m])
     covered = sum(int(m.sum()) for m in masks)  # no pixel every mode covered: all modes tie at +inf
-    pairs = [(out.I, t) for out, t in zip(outputs, targets, strict=True)]
+    pairs = [(surface_colour(out), t) for out, t in zip(outputs, targets, strict=True)]
     scored = list(masks)
     if window > 1:
-        pairs = [(local_mean(a, window), local_mean(b, window)) for a, b in pairs]
-        scored = [local_mean(m.astype(np.float64), window) > 1 - 1e-9 for m in masks]
-        if not sum(int(m.sum()) for m in scored):  # no square wholly covered: score pixel by pixel
-            pairs, scored = [(out.I, t) for out, t in zip(outputs, targets, strict=True)], list(masks)
+        local = [(local_mean(a, window), local_mean(b, window)) for a, b in pairs]
+        wide = [local_mean(m.astype(np.float64), window) > 1 - 1e-9 for m in masks]
+        if sum(int(m.sum()) for m in wide):  # else no square wholly covered: score pixel by pixel
+            pairs, scored = local, wide
     psnr = pooled_psnr(pairs, scored) if covered else math.inf
     res = {"psnr": psnr, "covered": covered / sum(m.size for m in masks)}
     if att:

@@ -84,7 +84,7 @@ def test_the_race_scores_local_means_so_blur_is_not_water():
 
     class Out:
         def __init__(self, img):
-            self.I, self.A, self.B = img, None, None
+            self.I, self.J, self.A, self.B, self.alpha = img, img, None, None, np.ones(img.shape[:2])
 
     rng = np.random.default_rng(0)
     sharp = np.repeat(rng.uniform(0.2, 0.8, (12, 16)).repeat(8, 0).repeat(8, 1)[..., None], 3, -1)
@@ -96,6 +96,26 @@ def test_the_race_scores_local_means_so_blur_is_not_water():
     local = {k: _score_held([Out(v)], [photo], masks, 9)["psnr"] for k, v in (("sharp", sharp), ("veil", veiled))}
     assert pixel["veil"] > pixel["sharp"], pixel
     assert local["sharp"] > local["veil"] + 3, local
+
+
+def test_half_covered_pixels_are_scored_by_the_surface_each_mode_predicts():
+    """At alpha 0.5 plain splatting shows half its colour over the black background, a medium fills the rest with
+    its veil B∞: scored on what they show, the medium wins without any water; on the surface colour they tie."""
+    from pipeline.train.probe import surface_colour
+    from pipeline.train.render import ViewOutputs
+
+    rng = np.random.default_rng(1)
+    surface = rng.uniform(0.2, 0.6, (8, 8, 3))
+    alpha = np.full((8, 8), 0.5)
+    plain = ViewOutputs(alpha[..., None] * surface, alpha[..., None] * surface, None, None, np.ones((8, 8)), alpha)
+    A, B = np.full((8, 8, 3), 0.999), np.full((8, 8, 3), 0.001)
+    J = alpha[..., None] * (surface - B) / A
+    shown = J * A + alpha[..., None] * B + (1 - alpha[..., None]) * 0.4  # eq. 4 over the water, B∞ 0.4
+    medium = ViewOutputs(J, shown, A, B, np.ones((8, 8)), alpha)
+    np.testing.assert_allclose(surface_colour(plain), surface, atol=1e-9)
+    np.testing.assert_allclose(surface_colour(medium), surface, atol=1e-9)
+    masks, photo = [alpha >= 0.5], [surface + rng.normal(0, 0.01, surface.shape)]
+    assert abs(_score_held([plain], photo, masks)["psnr"] - _score_held([medium], photo, masks)["psnr"]) < 1e-6
 
 
 def test_weak_measured_water_does_not_outweigh_a_lost_race():
@@ -119,7 +139,10 @@ def test_rule_without_cover_rests_on_the_measured_water():
     mode, reason = decide({"3dgs": blind(), "homogeneous": blind(nan, 0.3), "dualphys": blind(nan, 0.3)}, cfg)
     assert mode == "homogeneous" and "inconclusive" in reason and "0.300" in reason
     mode, reason = decide({"3dgs": blind(), "homogeneous": blind(nan, 0.02), "dualphys": blind(nan, 0.02)}, cfg)
-    assert mode == "3dgs" and "do not measure water" in reason
+    assert mode == "3dgs" and "do not measure enough water" in reason
+    # a generated photo scene without water, its far views 3.8 % covered, measured 0.139: not enough
+    mode, reason = decide({"3dgs": blind(), "homogeneous": blind(nan, 0.139), "dualphys": blind(nan, 0.139)}, cfg)
+    assert mode == "3dgs" and "do not measure enough water" in reason
     # 4 % covered is still too little; 6 % is a race
     few = {m: dataclasses.replace(_score(p, e), covered=0.04) for m, p, e in
            (("3dgs", 25.0, None), ("homogeneous", 20.0, 0.3), ("dualphys", 20.0, 0.3))}
