@@ -47,7 +47,10 @@ def test_photo_textured_water_keeps_its_scene_and_is_restored(tmp_path, preset, 
                                "restored": round(rest["restored"]["psnr"], 2),
                                "photo": round(rest["input"]["psnr"], 2)})
     assert r["mode"] in ("homogeneous", "dualphys"), r["selection"]["reason"]  # there is water to model out
-    assert not q["collapsed"] and q["warnings"] == [], q["warnings"]
+    assert not q["collapsed"], q["warnings"]
+    # The SfM retry ladder now registers the three oblique frames the first pass left out (16 of 16 in medium
+    # water); their far field is drawn partly beyond 3x the points' distance, a warning (issue 39's note).
+    assert all("beyond 3x" in w for w in q["warnings"]), q["warnings"]
     assert q["point_coverage_min"] >= 0.98  # no training view lost its seabed
     assert q["n_gaussians"] >= 0.2 * q["budget"], (q["n_gaussians"], q["budget"])
     truth = json.loads(JobLayout(tmp_path / "job").restore_result.read_text())["truth"]
