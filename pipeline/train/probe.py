@@ -35,6 +35,7 @@ from pipeline.config import TrainConfig, rescheduled, to_dict
 from pipeline.job.layout import SELECTION_NAME
 from pipeline.medium.estimate import MediumEstimate
 from pipeline.scene.records import Scene, View, view_ranges
+from pipeline.train.quality import box_mean
 
 log = logging.getLogger(__name__)
 
@@ -252,16 +253,6 @@ def _render_held(trainer, views: Sequence[View]) -> list:
     return [trainer.outputs(v) for v in views]
 
 
-def local_mean(x: np.ndarray, k: int) -> np.ndarray:
-    """Mean of ``x`` [H, W, ...] over a k x k square around each pixel (edges repeated); k odd."""
-    r = k // 2
-    pad = [(r, r), (r, r)] + [(0, 0)] * (x.ndim - 2)
-    c = np.pad(np.pad(np.asarray(x, np.float64), pad, mode="edge").cumsum(0).cumsum(1),
-               [(1, 0), (1, 0)] + [(0, 0)] * (x.ndim - 2))
-    h, w = x.shape[:2]
-    return (c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]) / (k * k)
-
-
 def surface_colour(out) -> np.ndarray:
     """What a mode predicts for the surface at each pixel, whatever its coverage: the colour over alpha, with the
     water between (J·A + α·B) / α in medium modes, J / α in plain splatting. Scored this way, a pixel the fitted
@@ -290,8 +281,8 @@ def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndar
     pairs = [(surface_colour(out), t) for out, t in zip(outputs, targets, strict=True)]
     scored = list(masks)
     if window > 1:
-        local = [(local_mean(a, window), local_mean(b, window)) for a, b in pairs]
-        wide = [local_mean(m.astype(np.float64), window) > 1 - 1e-9 for m in masks]
+        local = [(box_mean(a, window), box_mean(b, window)) for a, b in pairs]
+        wide = [box_mean(m.astype(np.float64), window) > 1 - 1e-9 for m in masks]
         if sum(int(m.sum()) for m in wide):  # else no square wholly covered: score pixel by pixel
             pairs, scored = local, wide
     psnr = pooled_psnr(pairs, scored) if covered else math.inf

@@ -93,11 +93,13 @@ def view_point_ranges(scene: Scene, view: View) -> tuple[np.ndarray, np.ndarray]
     return xy, (np.linalg.norm(pts[ids] - view.center, axis=1) if len(ids) else np.zeros(0))
 
 
-def _box_mean(x: np.ndarray, k: int) -> np.ndarray:
-    """Mean of ``x`` [H, W] over a k x k square around each pixel (edges repeated)."""
+def box_mean(x: np.ndarray, k: int) -> np.ndarray:
+    """Mean of ``x`` [H, W, ...] over a k x k square around each pixel (edges repeated); k odd."""
     r = k // 2
-    c = np.pad(np.pad(x, r, mode="edge").cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-    h, w = x.shape
+    rest = [(0, 0)] * (x.ndim - 2)
+    c = np.pad(np.pad(np.asarray(x, np.float64), [(r, r), (r, r)] + rest, mode="edge").cumsum(0).cumsum(1),
+               [(1, 0), (1, 0)] + rest)
+    h, w = x.shape[:2]
     return (c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]) / (k * k)
 
 
@@ -108,8 +110,8 @@ def uncovered_detail(photo: np.ndarray, predicted: np.ndarray, covered: np.ndarr
     if not covered.any():
         return None
     g = (np.asarray(photo, dtype=np.float64) - predicted).mean(-1)
-    mu = _box_mean(g, DETAIL_WINDOW)
-    spread = np.sqrt(np.clip(_box_mean(g * g, DETAIL_WINDOW) - mu * mu, 0.0, None))
+    mu = box_mean(g, DETAIL_WINDOW)
+    spread = np.sqrt(np.clip(box_mean(g * g, DETAIL_WINDOW) - mu * mu, 0.0, None))
     ref = float(np.median(spread[covered]))
     return float((~covered & (spread > DETAIL_FACTOR * ref)).mean())
 

@@ -17,8 +17,9 @@ from pipeline.scene.records import Camera, Scene, View
 from pipeline.scene.split import split_views
 from pipeline.synth.procedural import generate_scene
 from pipeline.train.budget import MIN_GAUSSIANS, scene_budget
-from pipeline.train.probe import ModeScore, ProbeConfig, common_cover, decide, holdout_split, local_mean
+from pipeline.train.probe import ModeScore, ProbeConfig, common_cover, decide, holdout_split
 from pipeline.train.probe import _score as _score_held
+from pipeline.train.quality import box_mean
 from pipeline.train.resolve import resolve_train_config
 from pipeline.train.stage import select_mode
 from pipeline.water import classify
@@ -89,7 +90,7 @@ def test_the_race_scores_local_means_so_blur_is_not_water():
     rng = np.random.default_rng(0)
     sharp = np.repeat(rng.uniform(0.2, 0.8, (12, 16)).repeat(8, 0).repeat(8, 1)[..., None], 3, -1)
     sharp += rng.normal(0, 0.15, sharp.shape)  # fine texture
-    photo = local_mean(sharp, 5)  # the lens blurred it
+    photo = box_mean(sharp, 5)  # the lens blurred it
     veiled = 0.6 * sharp + 0.4 * 0.5 + 0.03  # contrast lowered by a grey veil, a little too bright
     masks = [np.ones(sharp.shape[:2], bool)]
     pixel = {k: _score_held([Out(v)], [photo], masks, 1)["psnr"] for k, v in (("sharp", sharp), ("veil", veiled))}

@@ -138,10 +138,10 @@ def test_uncovered_detail_flags_seabed_given_up_as_veil_not_open_water():
 
 
 def test_box_mean_matches_a_direct_window_mean():
-    from pipeline.train.quality import _box_mean
+    from pipeline.train.quality import box_mean
 
     x = np.random.default_rng(1).normal(size=(9, 13))
-    got = _box_mean(x, 3)
+    got = box_mean(x, 3)
     pad = np.pad(x, 1, mode="edge")
     ref = np.array([[pad[i:i + 3, j:j + 3].mean() for j in range(13)] for i in range(9)])
     assert np.allclose(got, ref)
