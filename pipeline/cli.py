@@ -91,6 +91,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
         from pipeline.synth.defocus import defocus_scene
 
         extra = {"defocus_px": args.defocus, "focus_m": round(defocus_scene(out, args.defocus), 3)}
+    if args.exposure > 0 or args.white_balance > 0:
+        from pipeline.synth.exposure import expose_scene
+
+        expose_scene(out, args.exposure, args.white_balance, args.seed)
+        extra.update(exposure=args.exposure, white_balance=args.white_balance)
     print(json.dumps({"out": str(out), "family": args.family, "views": views, "preset": preset, **extra,
                       "seconds": round(time.perf_counter() - t0, 2)}))
     return 0
@@ -345,6 +350,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--defocus", type=float, default=0.0, metavar="PX",
                    help="blur the photos as a lens focused at the median depth does: blur circle PX pixels at "
                         "infinity, sharp at the focus (pipeline.synth.defocus); 0 = sharp")
+    s.add_argument("--exposure", type=float, default=0.0, metavar="SPREAD",
+                   help="give each photo its own exposure, a gain on linear light within ±SPREAD (e.g. 0.3), "
+                        "truth in exposure.json (pipeline.synth.exposure); 0 = fixed")
+    s.add_argument("--white-balance", type=float, default=0.0, metavar="SPREAD",
+                   help="and its own white balance: a gain per channel within ±SPREAD")
     s.set_defaults(func=cmd_synth)
 
     s = sub.add_parser("sfm", help="structure from motion: images -> posed PINHOLE cameras + sparse points")
