@@ -20,7 +20,6 @@ points themselves.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -35,11 +34,13 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Observations:
-    """Every (point, view) sighting: point index, range along the ray (scene units), observed RGB in [0, 1]."""
+    """Every (point, view) sighting: point index, range along the ray (scene units), observed RGB in [0, 1], and
+    the index of the view it was seen in."""
 
     point: np.ndarray  # [M] int
     range: np.ndarray  # [M] float
     colour: np.ndarray  # [M, 3] float
+    view: np.ndarray | None = None  # [M] int, index into the views gathered (None: not recorded)
 
 
 @dataclass
@@ -55,6 +56,10 @@ class MediumEstimate:
     # (B_inf) after the fit (Laplace approximation), what the data alone would give, and which dominated.
     uncertainty: dict | None = None
     median_range: float = 0.0  # median range of the sightings used (scene units)
+    # per view gathered: its exposure log gains [3] (linear light, mean-neutral) when the fit measured them
+    # (pipeline.medium.exposure_fit), else None
+    log_gains: list | None = None
+    exposure_evidence: float | None = None  # how far those gains stood out of their noise (exposure_fit)
 
     def effect(self, r: float | None = None) -> float:
         """How much this water changes a surface seen at range ``r`` (default: the sightings' median range): the
@@ -81,8 +86,8 @@ def gather_observations(points: np.ndarray, views: Sequence[View], images: Seque
     comments").
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    idx_all, rng_all, col_all = [], [], []
-    for v, img in zip(views, images, strict=True):
+    idx_all, rng_all, col_all, view_all = [], [], [], []
+    for k, (v, img) in enumerate(zip(views, images, strict=True)):
         im = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
         H, W = im.shape[:2]
         if sightings is not None and v.name in sightings:
@@ -96,11 +101,13 @@ def gather_observations(points: np.ndarray, views: Sequence[View], images: Seque
         if vis.size == 0:
             continue
         idx_all.append(vis)
+        view_all.append(np.full(vis.size, k, np.int64))
         rng_all.append(np.linalg.norm(pts[vis] - v.center, axis=1))
         col_all.append(im[w.astype(np.int64), u.astype(np.int64)].astype(np.float64))
     if not idx_all:
-        return Observations(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
-    return Observations(np.concatenate(idx_all), np.concatenate(rng_all), np.concatenate(col_all))
+        return Observations(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64))
+    return Observations(np.concatenate(idx_all), np.concatenate(rng_all), np.concatenate(col_all),
+                        np.concatenate(view_all))
 
 
 def _visible_projections(pts: np.ndarray, v: View, W: int, H: int, cell_px: int, depth_tolerance: float,
@@ -116,27 +123,6 @@ def _visible_projections(pts: np.ndarray, v: View, W: int, H: int, cell_px: int,
     np.minimum.at(zmin, cell, z[ids])
     vis = ids[z[ids] <= zmin[cell] * (1 + depth_tolerance)]
     return vis, u[vis], w[vis]
-
-
-_CACHE: dict[str, MediumEstimate | None] = {}  # the last few fits, keyed by their sightings and start
-_CACHE_SIZE = 4
-
-
-def measure_water(points: np.ndarray, views: Sequence[View], images: Sequence[np.ndarray | torch.Tensor],
-                  sightings: dict[str, Sightings] | None, init_optical_depth: Sequence[float],
-                  ) -> MediumEstimate | None:
-    """:func:`fit_medium` of :func:`gather_observations`, remembered: the mode probe and the ablation train several
-    models on the same views, and each fit costs seconds."""
-    obs = gather_observations(points, views, images, sightings)
-    h = hashlib.sha1()
-    for a in (obs.point, obs.range, obs.colour, np.asarray(init_optical_depth, dtype=np.float64)):
-        h.update(np.ascontiguousarray(a).tobytes())
-    key = h.hexdigest()
-    if key not in _CACHE:
-        while len(_CACHE) >= _CACHE_SIZE:
-            _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = fit_medium(obs, init_optical_depth)
-    return _CACHE[key]
 
 
 PRIOR_SIGMA_LOG = float(np.log(3.0))  # the water-type prior on log β_D and log β_B: a factor of 3 either way

@@ -19,8 +19,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pipeline.config import MediumConfig
-from pipeline.medium.estimate import measure_water
 from pipeline.medium.losses import LossWeights, loss_terms
+from pipeline.medium.measure import measure_water
 from pipeline.medium.model import Medium, MediumOutput
 from pipeline.profiling import section
 from pipeline.scene.records import Camera, Scene, View, ray_length_factor, view_ranges
@@ -217,7 +217,8 @@ class MediumTerm:
     """Medium module + optimiser + losses for one training run."""
 
     def __init__(self, mode: str, cfg: MediumConfig, scene: Scene, views: Sequence[View],
-                 targets: Sequence[Tensor], total_iterations: int, device: torch.device, *, compiled: bool = False):
+                 targets: Sequence[Tensor], total_iterations: int, device: torch.device, *, compiled: bool = False,
+                 exposure_space: str | None = None):
         self.cfg = cfg
         self.mode = mode
         self.depth_scale = scene_depth_scale(scene, views)
@@ -228,7 +229,8 @@ class MediumTerm:
         self.estimate: dict[str, Any] | None = None
         self.beta_eff_mean: Tensor | None = None
         if cfg.colour_prior == "tracks" and len(scene.points):
-            est = measure_water(scene.points, views, targets, scene.sightings, cfg.init_optical_depth)
+            est = measure_water(scene.points, views, targets, scene.sightings, cfg.init_optical_depth,
+                                exposure_space)  # with each view's exposure where the run learns it
             if est is not None:
                 self.estimate = est.to_dict()
                 init = {"init_beta": est.beta_D, "init_beta_b": est.beta_B, "init_binf": est.B_inf}
