@@ -176,6 +176,14 @@ class TrainConfig:
     # "srgb": the physics runs on the photos' encoded values; "linear": on linear light (the photos decoded with
     # the sRGB EOTF; renders encoded back for display): JobOptions.colour_space, docs/DECISIONS.md
     colour_space: str = "srgb"
+    # Each training view's exposure and white balance as gains per channel on linear light (pipeline.train.exposure):
+    # "fit": the water fit's gains (pipeline.medium.exposure_fit), held; "learn": learned with the model (from the
+    # fit's gains where there are some); "off"; "auto": fit in the medium modes, learn in 3dgs (docs/DECISIONS.md,
+    # "Exposure per view"). exposure_lr: lr of their log when learned, decaying to a tenth; exposure_weight: the
+    # penalty on them
+    exposure: str = "auto"
+    exposure_lr: float = 5e-3
+    exposure_weight: float = 1e-3
     sh_degree: int = 3  # maximum spherical-harmonics degree
     sh_degree_interval: int = 1000  # the active SH degree rises by one every this many iterations
     lr_means: float = 1.6e-4  # initial position learning rate, multiplied by the scene extent
@@ -213,6 +221,8 @@ class TrainConfig:
             object.__setattr__(self, "densify", from_dict(DensifyConfig, self.densify))
         if isinstance(self.medium, dict):
             object.__setattr__(self, "medium", from_dict(MediumConfig, self.medium))
+        if self.exposure not in ("auto", "fit", "learn", "off"):
+            raise ValueError(f"exposure must be auto, fit, learn or off, got {self.exposure!r}")
         if self.mode not in ("3dgs", "homogeneous", "dualphys"):
             raise ValueError(f"mode must be 3dgs, homogeneous or dualphys, got {self.mode!r}")
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))

@@ -118,6 +118,7 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "selection": selection_of(job, options, ev["mode"]),
         "quality": quality_of(train),
         "schedule": train.get("schedule"),  # None for jobs trained before schedules followed the survey
+        "exposure": train.get("exposure"),  # each training view's learned gains; None: not learned
         "metrics": ev["metrics"],
         "restoration": restoration,
         "timings": timings,

@@ -92,6 +92,7 @@ def _restored_photos(r: dict, pics: Pictures) -> str:
     if rs.get("not_restored"):
         html += ("<p class=warn>Not restored: " + escape(", ".join(f"{x['name']} ({x['reason']})"
                                                                   for x in rs["not_restored"])) + "</p>")
+    html += _exposure(r.get("exposure"))
     html += _consistency(r.get("consistency"))
     truth = rs.get("truth")
     if truth:
@@ -104,6 +105,18 @@ def _restored_photos(r: dict, pics: Pictures) -> str:
                           "restored edge offset (px)", "render edge offset (px)"], rows, 3))
     return html + "".join(f"<p class=muted>{escape(name)}</p>" + _figures(cells, wide=2)
                           for name, cells in pics.originals)
+
+
+def _exposure(e: dict | None) -> str:
+    """The training views' learned exposure and white balance (``pipeline.train.exposure``), in one sentence."""
+    if not e or not e.get("views"):
+        return ""
+    if str(e.get("source", "")).startswith("none"):
+        return ("<p><b>Exposure:</b> the photos showed no change of exposure or white balance between them (their "
+                "sparse points' colours agree within the fit's noise); none was corrected.</p>")
+    return (f"<p><b>Exposure:</b> the photos' exposure and white balance varied by up to "
+            f"{fmt(100 * e['max_deviation'], 0)} % from the survey's mean (a gain per channel and photo, learned with "
+            f"the model; per photo in report.json). The restored photos are at the mean exposure.</p>")
 
 
 def _consistency(c: dict | None) -> str:

@@ -39,6 +39,7 @@ from pipeline.restore.lens import DEFAULT_TOL, LensGrid
 from pipeline.restore.records import RenderedView
 from pipeline.restore.sample import sample_maps
 from pipeline.scene.colour import srgb_to_linear
+from pipeline.scene.exposure import neutral
 from pipeline.scene.records import Camera, LensCamera
 
 logger = logging.getLogger(__name__)
@@ -168,7 +169,7 @@ class FrameRestorer:
         n_sq, n_lag = 0, 0
         m = self.view.medium
         for e0, y0, y1, e1 in self.calibration_bands():
-            rows = rows_of(e0, e1)
+            rows = self.neutral(rows_of(e0, e1))
             scale, r, surface, k_A, k_B, prior, _ = self._geometry(rows, e0, y0, y1)
             st = -(-r.size // CALIBRATION_PIXELS)  # every st-th row of a large photo's band
             x = rows[y0 - e0:y1 - e0:st].astype(np.float64) * scale
@@ -192,6 +193,15 @@ class FrameRestorer:
         self.noise2, self.detail2 = noise_and_detail(*measured)  # for the confidence's expected error
         self.detail_cov = detail_covariance(lag, aa)
         return self.lam2
+
+    def neutral(self, rows: np.ndarray) -> np.ndarray:
+        """The photo's rows as stored, or, when the view's exposure is known (``RenderedView.log_gain``), at
+        neutral exposure: float32 sRGB-encoded in [0, 1] (:func:`pipeline.scene.exposure.neutral`)."""
+        lg = self.view.log_gain
+        if lg is None:
+            return rows
+        scale = 1.0 / np.iinfo(rows.dtype).max if np.issubdtype(rows.dtype, np.integer) else 1.0
+        return np.clip(neutral(rows.astype(np.float32) * np.float32(scale), lg, "srgb"), 0, 1).astype(np.float32)
 
     def _geometry(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
         """What the physics needs of rows [y0, y1) besides the photo (``rows``: its rows [e0, e0 + len(rows))):
@@ -225,6 +235,7 @@ class FrameRestorer:
         """Restore rows [y0, y1) given the photo's rows [e0, e0 + len(rows)) (uint8/uint16/float [m, W, 3]).
         Returns (J [n, W, 3] uint8/uint16, confidence [n, W] float32, surface [n, W] bool, extension weight
         [n, W] float32, clipped count)."""
+        rows = self.neutral(rows)
         m = self.view.medium
         M = self.misfit_margin
         k0, k1 = max(e0, y0 - M), min(e0 + rows.shape[0], y1 + M)  # the rows the misfit's window reaches

@@ -55,6 +55,9 @@ class RenderedView:
     # render pixels added on each side of the training camera so the whole photo lands inside
     # (pipeline.restore.views.photo_view); the upsampling factor is the photo's width over the unpadded width
     pad: int = 0
+    # the photo's exposure and white balance, log gains [3] on linear light (pipeline.scene.exposure), removed
+    # before it is de-watered; None: taken at neutral exposure
+    log_gain: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = (self.camera.height, self.camera.width)

@@ -4,6 +4,7 @@ geometry -> ``JobLayout.restored`` and ``JobLayout.confidence``, with what happe
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 from pipeline.job.layout import JobLayout
@@ -22,6 +23,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     from pipeline.job.markers import atomic_write_json
     from pipeline.job.options import JobCancelled
+    from pipeline.restore.exposure import photo_gains
     from pipeline.restore.views import (
         NOTHING_TO_RESTORE,
         job_water_sigma,
@@ -52,6 +54,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     lenses = lens_cameras(layout.scene)
     photos = {p.name for p in list_images(layout.images)}
     gt = find_ground_truth(opts.source, opts.ground_truth)
+    gains = photo_gains(job, state)  # each photo's exposure, removed before it is de-watered
     renders = {}  # with ground truth: each view's J as displayed, scored against the truth below
     per_view, t_all = [], time.perf_counter()
     for k, view in enumerate(views):
@@ -60,6 +63,8 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         t0 = time.perf_counter()
         src = layout.images / view.name
         rendered, out, pad = render_for_photo(model, view, lenses[view.name], sigma)  # out to the photo's edges
+        if view.name in gains:
+            rendered = replace(rendered, log_gain=gains[view.name])
         if gt is not None:  # the training camera's render, as restored/ held it before
             J = displayed(out, model.colour_space).J
             renders[view.name] = J[pad:J.shape[0] - pad, pad:J.shape[1] - pad]

@@ -55,7 +55,7 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     except TrainingCancelled as e:
         raise JobCancelled(str(e)) from e
     out = {"mode": cfg.mode, "iterations": res.iteration, "metrics": res.metrics, "history": res.history,
-           "medium": res.medium,
+           "medium": res.medium, "exposure": res.exposure,
            "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
            "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale,
            "curve_views": [v.name for v in curve_views], "quality": quality, "recovery": recovery,

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -32,6 +33,7 @@ from pipeline.scene.records import Scene, View, scaled_view
 from pipeline.splat.densify import Densifier
 from pipeline.splat.gaussians import GAUSSIAN_KEYS
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
+from pipeline.train.exposure import ViewExposure
 from pipeline.train.hooks import Hook, ProgressFn, checkpoint_hook, eval_hook, log_hook, progress_hook
 from pipeline.train.image_losses import photometric_losses
 from pipeline.train.jit import maybe_compiled, should_compile
@@ -85,6 +87,7 @@ class TrainResult:
     checkpoint: Path | None = None
     elapsed_s: float = 0.0  # training seconds (steps only), summed across resumes
     medium: dict[str, Any] = field(default_factory=dict)  # medium modes: recovered per-channel coefficients
+    exposure: dict[str, Any] | None = None  # the training views' learned gains (exposure_record); None: not learned
 
 
 class Trainer:
@@ -123,10 +126,21 @@ class Trainer:
             # J is rendered premultiplied over black; uncovered pixels see the water's veiling light instead.
             self.background = torch.zeros(3, device=self.device)
             self.medium = MediumTerm(cfg.mode, cfg.medium, scene, self.views, self.targets, cfg.iterations,
-                                     self.device, compiled=self.compiled)
+                                     self.device, compiled=self.compiled,
+                                     exposure_space=cfg.colour_space if cfg.exposure != "off" else None)
             # Opacity resets only while J alone is fitted, with time to recover before the medium starts: once
             # the water is on, an uncovered pixel shows the veil, and a reset scene is not brought back.
             self.densifier.stop_resets_at(self.medium.start - RESET_RECOVERY_REFINES * cfg.densify.refine_every)
+        self.exposure: ViewExposure | None = None
+        if cfg.exposure != "off":  # from the water fit's gains where it measured them, held or learned
+            est = (self.medium.estimate or {}) if self.medium is not None else {}
+            init = est.get("log_gains")
+            learn = cfg.exposure == "learn" or init is None or (cfg.exposure == "auto" and self.medium is None)
+            source = ("learned in training" if learn else "the sparse points' fit, held in training"
+                      if np.any(init) else "none: the sparse points showed no change between frames")
+            self.exposure = ViewExposure(len(self.views), cfg.colour_space, cfg.exposure_lr if learn else 0.0,
+                                         cfg.exposure_weight, cfg.iterations, init, self.device, source=source,
+                                         evidence=est.get("exposure_evidence"))
         self.cameras = [view_tensors(v, self.device) for v in self.views]  # (viewmat [4,4], K [3,3])
         # The coarse start (TrainConfig.coarse_fraction): iterations 1..coarse_until render the views shrunk
         # coarse_downscale times against the targets area-averaged to that size, with the eager losses (a
@@ -162,15 +176,19 @@ class Trainer:
         return self.medium is not None and self.medium.active(iteration)
 
     def compute_losses(self, out: RenderOutput, i: int) -> dict[str, Tensor]:
-        """Named, already weighted loss terms for view ``i``; the step sums them once."""
+        """Named, already weighted loss terms for view ``i``; the step sums them once. The photo is compared at
+        neutral exposure (``pipeline.train.exposure``) when the run learns the views' exposure."""
+        target, extra = self.targets[i], {}
+        if self.exposure is not None:
+            target, extra = self.exposure.correct(i, target), {"exposure": self.exposure.penalty(i)}
         if self.medium is not None and self.medium_on(self.iteration + 1):
             assert out.depth is not None
-            return self.medium.losses(i, out.image, out.alpha, out.depth, self.targets[i])
-        losses, target = self._photometric, self.targets[i]
+            return {**self.medium.losses(i, out.image, out.alpha, out.depth, target), **extra}
+        losses = self._photometric
         if self.coarse(self.iteration + 1):  # the shrunk render against the target area-averaged to its size
             losses, target = photometric_losses, shrink_image(target, *out.image.shape[:2])
         with section("losses: photometric fwd"):
-            return losses(out.image, target, self.cfg.ssim_weight)
+            return {**losses(out.image, target, self.cfg.ssim_weight), **extra}
 
     def outputs(self, view: View) -> ViewOutputs:
         """Everything the model renders for ``view`` (J, I, A, B, depth, alpha), through the medium once it is on."""
@@ -204,6 +222,8 @@ class Trainer:
                 opt.zero_grad(set_to_none=True)
             if self.medium is not None:
                 self.medium.step()
+            if self.exposure is not None:
+                self.exposure.step(it)
         if self.medium is not None:
             grad = out.info["means2d"].grad
             if grad is not None:  # the photo's gradients are A times the scene's: densify on the scene's scale
@@ -253,6 +273,7 @@ class Trainer:
                 "view_queue": list(self._view_queue),
             },
             "medium": self.medium.state_dict() if self.medium is not None else None,
+            "exposure": self.exposure.state_dict() if self.exposure is not None else None,
         }
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
@@ -278,6 +299,8 @@ class Trainer:
         self.history = list(sd["history"])
         if self.medium is not None and sd.get("medium") is not None:
             self.medium.load_state_dict(sd["medium"])
+        if self.exposure is not None and sd.get("exposure") is not None:
+            self.exposure.load_state_dict(sd["exposure"])
 
     def save(self, path: str | Path) -> Path:
         return save_checkpoint(path, self.state_dict())
@@ -343,5 +366,6 @@ def train(
     if ckpt is not None:
         trainer.save(ckpt)
     medium = trainer.medium.effective_coefficients() if trainer.medium is not None else {}
+    exposure = trainer.exposure.record([v.name for v in trainer.views]) if trainer.exposure is not None else None
     return TrainResult(trainer.gaussians, trainer.iteration, metrics, trainer.history, ckpt, trainer.elapsed_s,
-                       medium)
+                       medium, exposure)
