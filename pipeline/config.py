@@ -173,6 +173,9 @@ class TrainConfig:
     backend: Backend = "auto"  # rasterizer backend (pipeline.splat.rasterize)
     downscale: int = 1  # train on images shrunk by this integer factor (area averaging)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # RGB composited behind the Gaussians
+    # 3dgs only: a random background colour every step (gsplat's random_bkgd), so no Gaussian can paint a dark
+    # surface by letting the black background through; the mode probe's runs use it (pipeline.train.probe)
+    random_background: bool = False
     # "srgb": the physics runs on the photos' encoded values; "linear": on linear light (the photos decoded with
     # the sRGB EOTF; renders encoded back for display): JobOptions.colour_space, docs/DECISIONS.md
     colour_space: str = "srgb"

@@ -153,6 +153,7 @@ class Trainer:
         self.elapsed_s = 0.0
         self.history: list[dict[str, float]] = []
         self._view_gen = torch.Generator().manual_seed(cfg.seed)
+        self._bg_gen = torch.Generator().manual_seed(cfg.seed + 1)  # TrainConfig.random_background
         self._view_queue: list[int] = []
 
     def next_view(self) -> int:
@@ -193,7 +194,9 @@ class Trainer:
     def outputs(self, view: View) -> ViewOutputs:
         """Everything the model renders for ``view`` (J, I, A, B, depth, alpha), through the medium once it is on."""
         medium = self.medium.medium if self.medium is not None and self.medium_on(self.iteration) else None
-        return render_outputs(self.gaussians, view, medium, self.max_sh_degree, self.cfg.backend, self.background)
+        background = (torch.tensor(self.cfg.background, dtype=torch.float32, device=self.device)
+                      if self.cfg.random_background and self.medium is None else self.background)
+        return render_outputs(self.gaussians, view, medium, self.max_sh_degree, self.cfg.backend, background)
 
     def predict(self, view: View) -> Tensor:
         """The photo this model predicts for ``view`` (with water in medium modes), clamped. [H, W, 3]"""
@@ -204,6 +207,8 @@ class Trainer:
         it = self.iteration + 1
         self.optimizers["means"].param_groups[0]["lr"] = means_lr(self.cfg, self.extent, it)
         i, sh_degree = self.next_view(), min(active_sh_degree(self.cfg, it), self.max_sh_degree)
+        if self.cfg.random_background and self.medium is None:
+            self.background = torch.rand(3, generator=self._bg_gen).to(self.device)
         with section("render"):
             out = self.render(i, sh_degree, "RGB+ED" if self.medium_on(it) else "RGB", self.coarse(it))
         with section("densify"):
