@@ -77,13 +77,22 @@ def image_scores(pairs: list[tuple[np.ndarray, np.ndarray]], lp: LPIPSSetting) -
     return res
 
 
-def held_out_metrics(rendered: Sequence[Rendered], photos: Sequence[np.ndarray], lp: LPIPSSetting) -> dict[str, Any]:
-    """Held-out scores of the with-water render against the photos, pooled and per view."""
-    pairs = [(r.out.I, p) for r, p in zip(rendered, photos, strict=True)]
+def held_out_metrics(rendered: Sequence[Rendered], photos: Sequence[np.ndarray], lp: LPIPSSetting,
+                     gains: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+    """Held-out scores of the with-water render against the photos, pooled and per view; a view in ``gains``
+    (log gains [3], :func:`pipeline.train.exposure.photo_gains`) is rendered at its photo's exposure (the model is
+    at the survey's mean)."""
+    from pipeline.scene.exposure import exposed
+
+    gains = gains or {}
+    pairs = [(np.clip(exposed(r.out.I, gains[r.view.name], "srgb"), 0, 1).astype(np.float32)
+              if r.view.name in gains else r.out.I, p) for r, p in zip(rendered, photos, strict=True)]
     per_view = [{"name": r.view.name, "psnr": pooled_psnr([pair]), "ssim": mean_ssim([pair]),
                  "render_ms": r.ms} for r, pair in zip(rendered, pairs, strict=True)]
     return {**image_scores(pairs, lp), "n_views": len(pairs), "views": [r.view.name for r in rendered],
-            "compared": "model rendered with water vs the held-out photos", "per_view": per_view}
+            "compared": "model rendered with water vs the held-out photos" + (
+                " (at each photo's exposure, measured from its sparse points)" if gains else ""),
+            "per_view": per_view}
 
 
 def speed_vs_error(history: Sequence[dict], final_iteration: int, views: Sequence[str]) -> dict[str, Any]:
@@ -240,6 +249,7 @@ def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages
     from pipeline.scene.loader import load_scene, load_view_image
     from pipeline.scene.split import split_views
     from pipeline.train.checkpoint import load_checkpoint
+    from pipeline.train.exposure import photo_gains
     from pipeline.train.model import model_from_state
 
     t0 = time.perf_counter()
@@ -252,7 +262,8 @@ def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages
     test = [scaled_view(v, down) for v in test]
     lp = lpips_from_env()
     rendered = render_timed(model, test, backend)
-    metrics = held_out_metrics(rendered, [load_view_image(v) for v in test], lp)
+    gains = photo_gains(job, state)  # the held-out photos' exposure, measured from their sparse points
+    metrics = held_out_metrics(rendered, [load_view_image(v) for v in test], lp, gains)
     train = json.loads(layout.train_result.read_text())
     restoration = None
     if ground_truth is not None:

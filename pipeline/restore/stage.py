@@ -23,7 +23,6 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     from pipeline.job.markers import atomic_write_json
     from pipeline.job.options import JobCancelled
-    from pipeline.restore.exposure import photo_gains
     from pipeline.restore.views import (
         NOTHING_TO_RESTORE,
         job_water_sigma,
@@ -34,6 +33,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.scene.images import list_images
     from pipeline.synth.ground_truth import find_ground_truth
     from pipeline.train.checkpoint import load_checkpoint
+    from pipeline.train.exposure import photo_gains
     from pipeline.train.model import model_from_state
     from pipeline.train.render import displayed
 
