@@ -116,7 +116,7 @@ def _exposure(e: dict | None) -> str:
                 "sparse points' colours agree within the fit's noise); none was corrected.</p>")
     return (f"<p><b>Exposure:</b> the photos' exposure and white balance varied by up to "
             f"{fmt(100 * e['max_deviation'], 0)} % from the survey's mean (a gain per channel and photo, learned with "
-            f"the model; per photo in report.json). The restored photos are at the mean exposure.</p>")
+            f"the model; per photo in the JSON report). The restored photos are at the mean exposure.</p>")
 
 
 def _consistency(c: dict | None) -> str:

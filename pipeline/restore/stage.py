@@ -4,7 +4,6 @@ geometry -> ``JobLayout.restored`` and ``JobLayout.confidence``, with what happe
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 from pipeline.job.layout import JobLayout
@@ -62,9 +61,8 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
             raise JobCancelled(f"cancelled during restore after {k} of {len(views)} photos")
         t0 = time.perf_counter()
         src = layout.images / view.name
-        rendered, out, pad = render_for_photo(model, view, lenses[view.name], sigma)  # out to the photo's edges
-        if view.name in gains:
-            rendered = replace(rendered, log_gain=gains[view.name])
+        rendered, out, pad = render_for_photo(model, view, lenses[view.name], sigma,  # out to the photo's edges
+                                              log_gain=gains.get(view.name))
         if gt is not None:  # the training camera's render, as restored/ held it before
             J = displayed(out, model.colour_space).J
             renders[view.name] = J[pad:J.shape[0] - pad, pad:J.shape[1] - pad]

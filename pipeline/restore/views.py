@@ -7,6 +7,7 @@ undistorted ray is the same in both: :mod:`pipeline.restore.lens` maps between t
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -108,12 +109,15 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: V
 
 
 def render_for_photo(model: TrainedModel, view: View, lens: LensCamera, sigma: np.ndarray | None = None,
-                     backend: str = "auto") -> tuple[RenderedView, ViewOutputs, int]:
+                     backend: str = "auto", log_gain: np.ndarray | None = None
+                     ) -> tuple[RenderedView, ViewOutputs, int]:
     """The model rendered for restoring ``view``'s photo (``lens``), in :func:`photo_view`'s padded camera: (what
-    the restorer reads, the render's outputs, the pad in render pixels on each side)."""
+    the restorer reads, the render's outputs, the pad in render pixels on each side). ``log_gain``: the photo's
+    exposure (:func:`pipeline.train.exposure.photo_gains`), removed before it is de-watered."""
     padded, pad = photo_view(view, lens)
     out = render_outputs(model.gaussians, padded, model.medium, model.sh_degree, backend, model.background)
-    return rendered_view(model, padded, backend, out=out, sigma=sigma, pad=pad), out, pad
+    rendered = rendered_view(model, padded, backend, out=out, sigma=sigma, pad=pad)
+    return dataclasses.replace(rendered, log_gain=log_gain), out, pad
 
 
 def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: LensCamera, view: RenderedView, *,

@@ -114,7 +114,7 @@ def photo_gains(job: Path, state: dict) -> dict[str, np.ndarray]:
     record = (json.loads(layout.train_result.read_text()).get("exposure") or {}) if layout.train_result.exists() else {}
     gains = {name: np.log(np.asarray(g, dtype=np.float64)) for name, g in (record.get("views") or {}).items()}
     estimate = (state.get("medium") or {}).get("estimate")
-    if not gains or not estimate:
+    if not gains or not estimate or not any(np.any(g) for g in gains.values()):  # none, or a fixed camera
         return gains
     scene = load_scene(layout.scene)
     names = [v.name for v in scene.views]
