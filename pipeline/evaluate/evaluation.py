@@ -38,6 +38,7 @@ from pipeline.evaluate.metrics import (
 )
 from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
 from pipeline.job.layout import JobLayout
+from pipeline.scene.exposure import exposed
 from pipeline.scene.records import View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel
@@ -82,8 +83,6 @@ def held_out_metrics(rendered: Sequence[Rendered], photos: Sequence[np.ndarray],
     """Held-out scores of the with-water render against the photos, pooled and per view; a view in ``gains``
     (log gains [3], :func:`pipeline.train.exposure.photo_gains`) is rendered at its photo's exposure (the model is
     at the survey's mean)."""
-    from pipeline.scene.exposure import exposed
-
     gains = gains or {}
     pairs = [(np.clip(exposed(r.out.I, gains[r.view.name], "srgb"), 0, 1).astype(np.float32)
               if r.view.name in gains else r.out.I, p) for r, p in zip(rendered, photos, strict=True)]

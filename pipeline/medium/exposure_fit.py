@@ -36,6 +36,31 @@ SHRINK_SIGHTINGS = 1.0  # a view's gain is shrunk by n / (n + this) towards 1 (n
 DARK = 0.01  # linear light: sightings darker than this (predicted or seen) carry no exposure information
 
 
+def _water(r: np.ndarray, est: MediumEstimate) -> tuple[np.ndarray, np.ndarray]:
+    """The water's transmission e^(−β_D r) and veil B∞(1 − e^(−β_B r)) at ranges ``r`` [M]. ([M, 3], [M, 3])"""
+    r = np.asarray(r, np.float64)[:, None]
+    return np.exp(-np.asarray(est.beta_D) * r), np.asarray(est.B_inf) * (1 - np.exp(-np.asarray(est.beta_B) * r))
+
+
+def _point_colours(point: np.ndarray, colour: np.ndarray, a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """Each point's colour J [n, 3] solved in closed form from its sightings (least squares of J·a + b = colour,
+    clamped to [0, 1]: the fit's variable projection)."""
+    return np.clip(np.stack([np.bincount(point, a[:, c] * (colour[:, c] - b[:, c]), minlength=n)
+                             / np.maximum(np.bincount(point, a[:, c] ** 2, minlength=n), 1e-12)
+                             for c in range(3)], 1), 0, 1)
+
+
+def _linear(x: np.ndarray, space: str) -> np.ndarray:
+    """Colours in ``space`` as linear light, clipped to [0, 1]."""
+    x = np.clip(x, 0, 1)
+    return srgb_to_linear(x) if space == "srgb" else x
+
+
+def _usable(seen: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """Sightings (linear light) that carry exposure information: neither dark nor clipped."""
+    return (seen > DARK) & (predicted > DARK) & (seen < 0.99)
+
+
 def predicted_colours(obs: Observations, est: MediumEstimate) -> np.ndarray:
     """What the fitted water predicts for each sighting, with each point's colour J solved in closed form from its
     sightings (the fit's variable projection): ``J_p·e^(−β_D r) + B∞(1 − e^(−β_B r))``. Sightings of points seen
@@ -46,13 +71,8 @@ def predicted_colours(obs: Observations, est: MediumEstimate) -> np.ndarray:
     if not keep.any():
         return out
     _, inv = np.unique(obs.point[keep], return_inverse=True)
-    r = obs.range[keep][:, None]
-    a = np.exp(-np.asarray(est.beta_D) * r)
-    b = np.asarray(est.B_inf) * (1 - np.exp(-np.asarray(est.beta_B) * r))
-    n = int(inv.max()) + 1
-    J = np.stack([np.bincount(inv, a[:, c] * (obs.colour[keep, c] - b[:, c]), minlength=n)
-                  / np.maximum(np.bincount(inv, a[:, c] ** 2, minlength=n), 1e-12) for c in range(3)], 1)
-    out[keep] = np.clip(J, 0, 1)[inv] * a + b
+    a, b = _water(obs.range[keep], est)
+    out[keep] = _point_colours(inv, obs.colour[keep], a, b, int(inv.max()) + 1)[inv] * a + b
     return out
 
 
@@ -62,13 +82,12 @@ def view_log_gains(seen: np.ndarray, predicted: np.ndarray, view: np.ndarray, n_
     light, shrunk towards 0 by n / (n + ``SHRINK_SIGHTINGS``); and their standard errors [V, 3] (the median's:
     1.253 x 1.483 MAD / √n). Views without a usable sighting get 0 (and do not enter the mean) and an infinite
     error."""
-    lin = (lambda x: srgb_to_linear(np.clip(x, 0, 1))) if space == "srgb" else (lambda x: np.clip(x, 0, 1))
-    s, p = lin(seen), lin(np.nan_to_num(predicted, nan=-1.0))
+    s, p = _linear(seen, space), _linear(np.nan_to_num(predicted, nan=-1.0), space)
     lg = np.zeros((n_views, 3))
     se = np.full((n_views, 3), np.inf)
     has = np.zeros(n_views, bool)
     for c in range(3):
-        ok = (s[:, c] > DARK) & (p[:, c] > DARK) & (s[:, c] < 0.99)
+        ok = _usable(s[:, c], p[:, c])
         ratio = np.log(s[ok, c] / p[ok, c])
         v = view[ok]
         order = np.argsort(v, kind="stable")
@@ -134,11 +153,10 @@ def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Seque
 
 def _median_log_ratio(seen: np.ndarray, pred: np.ndarray, space: str) -> np.ndarray | None:
     """Per channel, the median of log(seen / predicted) in linear light over usable sightings; None: too few."""
-    lin = (lambda x: srgb_to_linear(np.clip(x, 0, 1))) if space == "srgb" else (lambda x: np.clip(x, 0, 1))
-    s, p = lin(seen), lin(pred)
+    s, p = _linear(seen, space), _linear(pred, space)
     out = np.zeros(3)
     for c in range(3):
-        ok = (s[:, c] > DARK) & (p[:, c] > DARK) & (s[:, c] < 0.99)
+        ok = _usable(s[:, c], p[:, c])
         if ok.sum() < MIN_NEW_VIEW_SIGHTINGS:
             return None
         out[c] = float(np.median(np.log(s[ok, c] / p[ok, c])))
@@ -161,17 +179,12 @@ def new_view_gains(obs: Observations, known: dict[int, np.ndarray], est: MediumE
     is_known = np.isin(obs.view, list(known))
     for k, g in known.items():
         lg[k] = g
-    r = obs.range[:, None]
-    a = np.exp(-np.asarray(est.beta_D) * r)
-    b = np.asarray(est.B_inf) * (1 - np.exp(-np.asarray(est.beta_B) * r))
-    neutral_colour = neutral(obs.colour, lg[obs.view], space)
+    a, b = _water(obs.range, est)
     n = int(obs.point.max()) + 1
-    num = np.stack([np.bincount(obs.point[is_known], (a[is_known, c] * (neutral_colour[is_known, c]
-                    - b[is_known, c])), minlength=n) for c in range(3)], 1)
-    den = np.stack([np.bincount(obs.point[is_known], a[is_known, c] ** 2, minlength=n) for c in range(3)], 1)
-    solved = den[:, 0] > 0
-    pred = np.clip(num / np.maximum(den, 1e-12), 0, 1)[obs.point] * a + b
-    usable = solved[obs.point]
+    J = _point_colours(obs.point[is_known], neutral(obs.colour, lg[obs.view], space)[is_known], a[is_known],
+                       b[is_known], n)
+    pred = J[obs.point] * a + b
+    usable = (np.bincount(obs.point[is_known], minlength=n) > 0)[obs.point]  # J solved from a known view
     offsets = []
     for k, g in known.items():
         sel = usable & (obs.view == k)
