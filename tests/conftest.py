@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
+
 import pytest
 
 from pipeline.config import SynthConfig
@@ -9,6 +12,11 @@ from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.scene.records import Scene
 from pipeline.synth.procedural import generate_scene
+
+
+def pytest_configure(config) -> None:
+    """Undistortion caches (pipeline.scene.loader.default_undistort_cache) go to a scratch folder, not ~/.cache."""
+    os.environ.setdefault("DUALPHYS_CACHE", tempfile.mkdtemp(prefix="dualphys-test-cache-"))
 
 
 def _scope(nodeid: str) -> str:

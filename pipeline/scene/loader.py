@@ -9,9 +9,10 @@ Layouts recognised under ``root`` (first match wins, in this order):
 
 A model with PINHOLE / SIMPLE_PINHOLE cameras is read directly. Any other camera model (OPENCV in the
 SeaThru-NeRF sets, SIMPLE_RADIAL from a plain COLMAP run, ...) is undistorted to PINHOLE with
-``pycolmap.undistort_images`` into a cache folder (``workdir``, default ``root/_undistorted``) holding
-``images/`` and ``sparse/``, which is then loaded; the cache is reused while the source model and image
-files are unchanged (size and mtime fingerprint).
+``pycolmap.undistort_images`` into a cache folder (``workdir``, default :func:`default_undistort_cache`: the
+user's cache, never the survey folder, which may be read-only and is the user's) holding ``images/`` and
+``sparse/``, which is then loaded; the cache is reused while the source model and image files are unchanged
+(size and mtime fingerprint).
 
 Resolution: ``downscale`` is a divisor (2 = half width and height, like 3DGS's ``-r 2``). It scales the
 cameras with :meth:`~pipeline.scene.records.Camera.scaled` (:func:`~pipeline.scene.records.scaled_view`); the view's
@@ -73,13 +74,22 @@ def find_layout(root: str | os.PathLike[str]) -> tuple[Path, Path]:
     return images, sparse
 
 
+def default_undistort_cache(sparse_dir: str | os.PathLike[str]) -> Path:
+    """Where a model in ``sparse_dir`` is undistorted when the caller names no folder: ``$DUALPHYS_CACHE`` (else
+    ``$XDG_CACHE_HOME/dualphys``, else ``~/.cache/dualphys``) ``/undistorted/<hash of the model's path>``."""
+    xdg = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    base = os.environ.get("DUALPHYS_CACHE") or xdg / "dualphys"
+    key = hashlib.sha1(str(Path(sparse_dir).resolve()).encode()).hexdigest()[:16]
+    return Path(base) / "undistorted" / key
+
+
 def load_scene(
     root: str | os.PathLike[str], *, downscale: float = 1.0, workdir: str | os.PathLike[str] | None = None
 ) -> Scene:
     """Load the scene under ``root`` (layouts in the module docstring) with PINHOLE cameras.
 
     ``downscale`` >= 1 divides the image size (cameras scaled accordingly); ``workdir`` is where distorted
-    models are undistorted to (default ``root/_undistorted``). Every view's image file must exist.
+    models are undistorted to (default :func:`default_undistort_cache`). Every view's image file must exist.
     Returns views sorted by name with ``image_path`` set and ``root`` = ``root``.
     """
     if not downscale >= 1.0:
@@ -89,7 +99,7 @@ def load_scene(
     try:
         scene = read_colmap(sparse_dir, images_dir)
     except UnsupportedCameraError as e:
-        cache = Path(workdir) if workdir is not None else root / "_undistorted"
+        cache = Path(workdir) if workdir is not None else default_undistort_cache(sparse_dir)
         log.info(
             "model %s has %s cameras: undistorting to PINHOLE into %s", sparse_dir, "/".join(e.models), cache
         )

@@ -23,7 +23,7 @@ from pipeline.config import SynthConfig
 from pipeline.scene.colmap import qvec_to_rotmat
 from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
 from pipeline.scene.images import read_image, read_pixels
-from pipeline.scene.loader import load_scene
+from pipeline.scene.loader import default_undistort_cache, load_scene
 from pipeline.synth.ground_truth import is_generated_scene, load_ground_truth
 from pipeline.synth.lens import pixel_ray_factor, undistort_normalized
 from pipeline.synth.photo import PhotoSynthConfig, default_textures_dir, generate_photo_scene
@@ -112,10 +112,12 @@ def test_pinhole_companion_resampled_matches_the_distorted_render(scene):
 
 
 def test_load_scene_and_ground_truth_on_a_distorted_scene(scene):
-    s = load_scene(scene)  # RADIAL: undistorted through pycolmap into scene/_undistorted
+    s = load_scene(scene)  # RADIAL: undistorted through pycolmap into the user's cache, not the scene folder
     assert [v.name for v in s.views] == list(NAMES)
-    assert all(v.image_path is not None and v.image_path.is_file() for v in s.views)
-    assert (scene / "_undistorted").is_dir()
+    cache = default_undistort_cache(scene / "sparse_gt")
+    assert all(v.image_path is not None and v.image_path.is_file() and v.image_path.parent == cache / "images"
+               for v in s.views)
+    assert not (scene / "_undistorted").exists()
     assert is_generated_scene(scene)
     gt = load_ground_truth(scene)
     v0 = gt.scene.views[0]
