@@ -222,6 +222,12 @@ def _selection(r: dict) -> str:
     sel, w = r["selection"], r["water"]
     water = f"Water classified {water_sentence(w)}." if w else "Water type not classified."
     html = f"<h2>Model selection</h2><p>Mode <b>{escape(sel['mode'])}</b>: {escape(sel['reason'])}. {water}</p>"
+    d = sel.get("drift") or {}
+    if d.get("score") is not None:
+        html += (f"<p>In the photos, the same seabed point's colour changes between near and far sightings by "
+                 f"{fmt(d['score'], 3)} of the seabed's contrast (largest channel; water makes it 0.29 or more, "
+                 f"photos without water stay below 0.09)"
+                 + ("" if d.get("defined") else f"; not used: {escape(d.get('reason') or '')}") + ".</p>")
     if no_water_removed(r):
         html += ("<p><b>No water was removed.</b> Mode 3dgs fits the photos as they are, with no model of the "
                  "water, so there is no restored image J; the views below show the model with the water in them"

@@ -11,8 +11,9 @@ mode briefly from that warm-up state and scores it on the held-back views, on th
 
 Every mode runs at SH degree 0, so the modes differ only in the water: with view-independent colour, plain
 splatting cannot fake the colour change with range that water causes, and far views are where that change is
-largest. The rule is :func:`decide`; its thresholds and the measurements behind them are in docs/DECISIONS.md
-("Automatic mode").
+largest. Before any training, the photos' own drift with range at the sparse points (:func:`survey_drift`) says
+whether there is water to model at all. The rule is :func:`decide`; its thresholds and the measurements behind
+them are in docs/DECISIONS.md ("Automatic mode").
 """
 
 from __future__ import annotations
@@ -33,8 +34,12 @@ import torch
 
 from pipeline.config import TrainConfig, rescheduled, to_dict
 from pipeline.job.layout import SELECTION_NAME
-from pipeline.medium.estimate import MediumEstimate
-from pipeline.scene.records import Scene, View, view_ranges
+from pipeline.medium.drift import photo_drift
+from pipeline.medium.estimate import MediumEstimate, gather_observations
+from pipeline.medium.measure import measure_water
+from pipeline.scene.colour import linear_to_srgb
+from pipeline.scene.exposure import neutral
+from pipeline.scene.records import Scene, View, scaled_view, view_ranges
 from pipeline.train.quality import box_mean
 
 log = logging.getLogger(__name__)
@@ -68,6 +73,8 @@ class ProbeConfig:
     sh_degree: int = 0  # view-independent colour in every mode, so plain splatting cannot fake range-dependent colour
     window: int = 9  # the race compares local means over squares this wide (of a <= max_width image): water changes
     #                  a region's mean colour, a lens's blur or texture averaged at range does not (docs/DECISIONS.md)
+    no_water_drift: float = 0.16  # the photos' own drift with range (survey_drift, largest channel) below this: no
+    #  water. Without water 0.004-0.086 (lens blur the most), with water 0.29-1.5 (docs/DECISIONS.md)
     min_measured_effect: float = 0.22  # water the points measured: below it (when they did measure it) a won race
     #  is not enough, at or above it a lost race is outranked. Generated scenes without water 0.10-0.20 (0.197 with
     #  a lens's defocus); real RUIE A188 0.25-0.27, B571 0.46-0.70; generated clear water 0.47 (docs/DECISIONS.md)
@@ -103,6 +110,7 @@ class Selection:
     probe: dict[str, dict]  # per mode: ModeScore.to_json()
     probe_setup: dict[str, Any]  # views fitted / held back, resolution, iterations, warm-up seconds, total seconds
     water: dict[str, Any] | None = None  # the classifier's type and probabilities, when known
+    drift: dict[str, Any] | None = None  # the photos' own drift with range (survey_drift)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -153,8 +161,33 @@ def classified_water(water: dict | None) -> str | None:
     return kind if kind in ("medium", "turbid") else None
 
 
-def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = None) -> tuple[str, str]:
-    """(chosen mode, reason). A water model is needed when both hold:
+def survey_drift(scene: Scene, images: Sequence[Any], base: TrainConfig) -> dict:
+    """:func:`~pipeline.medium.drift.photo_drift` of the training views' photos (``images`` at the job's training
+    size and colour space) at their sparse points, each photo at neutral exposure (the water fit's gains, the same
+    fit training starts from), in sRGB as calibrated."""
+    if not len(scene.points):
+        return {"defined": False, "reason": "the scene has no sparse points", "score": None}
+    views = [scaled_view(v, base.downscale) for v in scene.views]
+    frames = [images[i] for i in range(len(views))]
+    space = base.colour_space
+    obs = gather_observations(scene.points, views, frames, scene.sightings)
+    est = measure_water(scene.points, views, frames, scene.sightings, base.medium.init_optical_depth,
+                        space if base.exposure != "off" else None)
+    colour = obs.colour
+    if est is not None and est.log_gains is not None and obs.view is not None:
+        colour = neutral(colour, np.asarray(est.log_gains)[obs.view], space)
+    if space == "linear":
+        colour = linear_to_srgb(np.clip(colour, 0, 1))
+    return photo_drift(dataclasses.replace(obs, colour=np.asarray(colour, np.float64)))
+
+
+def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = None,
+           drift: dict | None = None) -> tuple[str, str]:
+    """(chosen mode, reason). First, photos whose colours do not drift with range (``drift``, :func:`survey_drift`,
+    below ``no_water_drift``) have no water to model: ``3dgs``, whatever the race, the points' fit or the
+    classifier say (on generated scenes without water, fitted on SfM poses, the points "measured" 0.29 of water
+    and the medium won the race by 2.8 dB; restored, the photos lost 27 dB). Otherwise a water model is needed
+    when both hold:
 
     - the medium modes learned water: the largest ``effect`` is at least ``min_effect``;
     - a medium mode predicts the held-back (furthest) views about as well as plain splatting or better: water
@@ -184,6 +217,11 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
     detail = "; ".join(f"{m} {scores[m].psnr:.2f} dB" + (f" (water {scores[m].effect:.3f})"
                                                         if scores[m].effect is not None else "")
                        for m in MODES if m in scores)
+    if drift and drift.get("defined") and drift["score"] < cfg.no_water_drift:
+        return "3dgs", (f"the photos show no water: between near and far sightings the same seabed point's colour "
+                        f"changes by {drift['score']:.3f} of the seabed's contrast at most (< {cfg.no_water_drift:g};"
+                        f" water makes it 0.29-1.5, lens blur without water up to 0.09; ranges "
+                        f"{drift['range_ratio']:.2f}x): plain splatting. {detail}")
     media = {m: s for m, s in scores.items() if s.effect is not None}
     covered = max((s.covered for s in scores.values()), default=0.0)
     if covered < cfg.min_covered:  # nothing (or next to nothing) scored: no race to rest on
@@ -337,6 +375,9 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
     cfg = cfg or ProbeConfig()
     report = on_progress or (lambda f, m: None)
     t_start = time.perf_counter()
+    drift = survey_drift(scene, images, base)
+    log.info("the photos' drift with range: %s", f"{drift['score']:.3f} (largest channel)" if drift.get("defined")
+             else f"undefined ({drift['reason']})")
     fit, held = holdout_split(scene.views, scene.points, cfg.holdout_fraction)
     width = scene.views[0].camera.width
     fit_scene = scene.subset([scene.views[i] for i in fit])  # keeps the points' tracks
@@ -383,7 +424,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
                                  measured_effect=measured.get(mode), measurement=kinds.get(mode), **s)
         log.info("probe %s: held-back PSNR %.2f dB%s (%.1f s)", mode, s["psnr"],
                  f", water effect {s['effect']:.3f}" if "effect" in s else "", seconds[mode])
-    chosen, reason = decide(scores, cfg, water)
+    chosen, reason = decide(scores, cfg, water, drift)
     report(1.0, f"probe: chose {chosen}")
     cam = held_views[0].camera
     setup = {"fit_views": [scene.views[i].name for i in fit], "held_back_views": [scene.views[i].name for i in held],
@@ -395,12 +436,12 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
     return Selection(requested=requested, chosen=chosen, reason=reason,
                      margin=_margins(cfg),
                      probe={m: s.to_json() for m, s in scores.items()}, probe_setup=setup,
-                     water=_water_summary(water))
+                     water=_water_summary(water), drift=drift)
 
 
 def _margins(cfg: ProbeConfig) -> dict[str, float]:
     return {"margin_db": cfg.margin_db, "min_effect": cfg.min_effect, "noise_db": cfg.noise_db,
-            "min_measured_effect": cfg.min_measured_effect, "window": cfg.window}
+            "min_measured_effect": cfg.min_measured_effect, "window": cfg.window, "no_water_drift": cfg.no_water_drift}
 
 
 def _water_summary(water: dict | None) -> dict | None:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluate.consistency import MIN_POINTS, colour_consistency, point_slopes, robust_line
+from pipeline.evaluate.consistency import MIN_POINTS, colour_consistency
+from pipeline.medium.drift import point_slopes, robust_line
 from pipeline.medium.estimate import Observations
 from pipeline.restore.consistency import photo_positions
 from pipeline.scene.records import Camera, LensCamera, Sightings, View

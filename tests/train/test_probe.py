@@ -146,6 +146,21 @@ def test_a_race_won_on_weakly_measured_water_is_not_water():
     assert decide(scores(0.123, "failed"), cfg)[0] == "homogeneous"
 
 
+def test_photos_that_do_not_drift_with_range_have_no_water():
+    """The photos' own drift with range decides first: a generated scene without water on SfM poses drifts 0.004
+    while its points "measured" 0.29 of water and the medium won the race by 2.8 dB; real water drifts 0.29 and
+    more. Undefined (a constant-range line) or above the bar, the race and the points decide as before."""
+    cfg = ProbeConfig()
+    med = dataclasses.replace(_score(33.98, 0.29), measured_effect=0.29, measurement="measured")
+    scores = {"3dgs": _score(31.18), "homogeneous": med, "dualphys": dataclasses.replace(med, psnr=33.43)}
+    flat = {"defined": True, "score": 0.004, "range_ratio": 1.34}
+    mode, reason = decide(scores, cfg, drift=flat)
+    assert mode == "3dgs" and "no water" in reason and "0.004" in reason
+    assert decide(scores, cfg, drift={**flat, "score": 0.29})[0] == "homogeneous"  # RUIE A188's first 12 frames
+    assert decide(scores, cfg, drift={**flat, "defined": False})[0] == "homogeneous"
+    assert decide(scores, cfg)[0] == "homogeneous"
+
+
 def test_rule_without_cover_rests_on_the_measured_water():
     """Held-back views the fitted views barely reach (the procedural survey's forward pass: 0 % covered): every
     PSNR is +inf and the learned water NaN. That race decides nothing; the sparse points' water does."""
@@ -242,6 +257,9 @@ def test_auto_picks_3dgs_without_water_and_a_medium_in_turbid_water(tmp_path, re
                                                               + sel["probe_setup"]["held_back_views"])
     assert none["chosen"] == "3dgs", none["reason"]
     assert turbid["chosen"] in ("homogeneous", "dualphys"), turbid["reason"]
+    cut = ProbeConfig().no_water_drift  # the photos' own drift says so too, with room on both sides
+    assert none["drift"]["defined"] and none["drift"]["score"] < cut / 2, none["drift"]
+    assert turbid["drift"]["defined"] and turbid["drift"]["score"] > 2 * cut, turbid["drift"]
     # a resumed job reuses the decision instead of probing again
     root = tmp_path / "none"
     scene = load_scene(root)
@@ -270,8 +288,10 @@ def test_auto_picks_3dgs_on_a_photo_seabed_without_water_blurred_with_range(tmp_
     sel = select_mode(tmp_path / "job", _base(train_scene, water), train_scene, images, water, StageContext())
     record_property("probe", {"chosen": sel["chosen"], "probe": {m: (p["psnr"], p.get("effect"),
                                                                      p.get("measured_effect"))
-                                                                 for m, p in sel["probe"].items()}})
+                                                                 for m, p in sel["probe"].items()},
+                              "drift": sel["drift"]})
     assert sel["chosen"] == "3dgs", sel["reason"]
+    assert sel["drift"]["defined"] and sel["drift"]["score"] < ProbeConfig().no_water_drift, sel["drift"]
 
 
 def test_too_few_views_skip_the_probe(tmp_path):
