@@ -81,7 +81,7 @@ def image_scores(pairs: list[tuple[np.ndarray, np.ndarray]], lp: LPIPSSetting) -
 def held_out_metrics(rendered: Sequence[Rendered], photos: Sequence[np.ndarray], lp: LPIPSSetting,
                      gains: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """Held-out scores of the with-water render against the photos, pooled and per view; a view in ``gains``
-    (log gains [3], :func:`pipeline.train.exposure.photo_gains`) is rendered at its photo's exposure (the model is
+    (log gains [3], :func:`pipeline.train.photo_exposure.photo_gains`) is rendered at its photo's exposure (the model is
     at the survey's mean)."""
     gains = gains or {}
     pairs = [(np.clip(exposed(r.out.I, gains[r.view.name], "srgb"), 0, 1).astype(np.float32)
@@ -90,7 +90,7 @@ def held_out_metrics(rendered: Sequence[Rendered], photos: Sequence[np.ndarray],
                  "render_ms": r.ms} for r, pair in zip(rendered, pairs, strict=True)]
     return {**image_scores(pairs, lp), "n_views": len(pairs), "views": [r.view.name for r in rendered],
             "compared": "model rendered with water vs the held-out photos" + (
-                " (at each photo's exposure, measured from its sparse points)" if gains else ""),
+                " (at each photo's exposure, measured against the model)" if gains else ""),
             "per_view": per_view}
 
 
@@ -248,8 +248,8 @@ def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages
     from pipeline.scene.loader import load_scene, load_view_image
     from pipeline.scene.split import split_views
     from pipeline.train.checkpoint import load_checkpoint
-    from pipeline.train.exposure import photo_gains
     from pipeline.train.model import model_from_state
+    from pipeline.train.photo_exposure import photo_gains
 
     t0 = time.perf_counter()
     job = Path(job)
@@ -261,7 +261,7 @@ def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages
     test = [scaled_view(v, down) for v in test]
     lp = lpips_from_env()
     rendered = render_timed(model, test, backend)
-    gains = photo_gains(job, state)  # the held-out photos' exposure, measured from their sparse points
+    gains = photo_gains(job)  # the held-out photos' exposure, measured against the model after training
     metrics = held_out_metrics(rendered, [load_view_image(v) for v in test], lp, gains)
     train = json.loads(layout.train_result.read_text())
     restoration = None

@@ -119,11 +119,11 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
         render_for_photo,
         restore_photo,
     )
-    from pipeline.train.exposure import photo_gains
     from pipeline.train.model import model_from_state
+    from pipeline.train.photo_exposure import photo_gains, survey_exposure
 
     model = model_from_state(state)
-    gains = photo_gains(job, state)  # each photo's exposure, as the restore stage removed it
+    gains = photo_gains(job)  # each photo's exposure, as the restore stage removed it
     if model.medium is None:
         raise RenderError(NOTHING_TO_RESTORE)
     layout = JobLayout(job)
@@ -132,7 +132,8 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
     for v in views:  # out/ gets the job's own folder names for them
         restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
                       lenses[v.name], render_for_photo(model, v, lenses[v.name], sigma,
-                                                       log_gain=gains.get(v.name))[0], max_gain=max_gain,
+                                                       log_gain=gains.get(v.name),
+                                                       survey_log_gain=survey_exposure(gains))[0], max_gain=max_gain,
                       fmt=fmt, space=model.colour_space)
     return len(views)
 

@@ -151,52 +151,31 @@ def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Seque
     return replace(est, log_gains=lg.tolist(), exposure_evidence=evidence), lg
 
 
-def _median_log_ratio(seen: np.ndarray, pred: np.ndarray, space: str) -> np.ndarray | None:
-    """Per channel, the median of log(seen / predicted) in linear light over usable sightings; None: too few."""
-    s, p = _linear(seen, space), _linear(pred, space)
-    out = np.zeros(3)
-    for c in range(3):
-        ok = _usable(s[:, c], p[:, c])
-        if ok.sum() < MIN_NEW_VIEW_SIGHTINGS:
-            return None
-        out[c] = float(np.median(np.log(s[ok, c] / p[ok, c])))
-    return out
-
-
-MIN_NEW_VIEW_SIGHTINGS = 20  # a view's exposure is measured from at least this many usable sightings per channel
-
-
-def new_view_gains(obs: Observations, known: dict[int, np.ndarray], est: MediumEstimate,
-                   space: str = "srgb") -> dict[int, np.ndarray]:
-    """The exposure log gains of views trained without (held out), on the scale of the ``known`` views' (view
-    index → log gains [3], the ones training learned): each point's colour J is solved from its sightings in known
-    views at neutral exposure, then a new view's gains are the median ratio of its sightings to what J and the
-    water ``est`` predict, less the same ratio's mean offset on the known views (what the global water gets wrong
-    there). Views with too few sightings are left out."""
-    if obs.view is None or not known:
-        return {}
-    lg = np.zeros((int(obs.view.max()) + 1, 3))
-    is_known = np.isin(obs.view, list(known))
-    for k, g in known.items():
-        lg[k] = g
-    a, b = _water(obs.range, est)
-    n = int(obs.point.max()) + 1
-    J = _point_colours(obs.point[is_known], neutral(obs.colour, lg[obs.view], space)[is_known], a[is_known],
-                       b[is_known], n)
-    pred = J[obs.point] * a + b
-    usable = (np.bincount(obs.point[is_known], minlength=n) > 0)[obs.point]  # J solved from a known view
-    offsets = []
-    for k, g in known.items():
-        sel = usable & (obs.view == k)
-        ratio = _median_log_ratio(obs.colour[sel], pred[sel], space)
-        if ratio is not None:
-            offsets.append(ratio - g)
-    offset = np.mean(offsets, axis=0) if offsets else np.zeros(3)
-    out = {}
-    for k in np.unique(obs.view[~is_known]):
-        sel = usable & (obs.view == k)
-        ratio = _median_log_ratio(obs.colour[sel], pred[sel], space)
-        if ratio is not None:
-            out[int(k)] = ratio - offset
-    return out
-
+def fit_exposure_only(obs: Observations, n_views: int, space: str = "srgb") -> tuple[np.ndarray, float]:
+    """Each view's exposure log gains [V, 3] (mean-neutral) from the sightings with no water between: a point's
+    colour is the same in every view but for the view's gains (the start of plain splatting's learned gains,
+    ``3dgs``); and their :func:`exposure_evidence` (the first pass's). Zero gains below
+    :data:`EXPOSURE_EVIDENCE`, as :func:`fit_with_exposure` holds them."""
+    if obs.view is None:
+        raise ValueError("the sightings must record their views to fit exposure")
+    counts = np.bincount(obs.point) if obs.point.size else np.zeros(0, np.int64)
+    keep = counts[obs.point] >= 2
+    lg = np.zeros((n_views, 3))
+    if not keep.any():
+        return lg, 0.0
+    _, point = np.unique(obs.point[keep], return_inverse=True)
+    colour, view = obs.colour[keep], obs.view[keep]
+    one, zero = np.ones_like(colour), np.zeros_like(colour)
+    evidence = None
+    for _ in range(ROUNDS * INNER):
+        J = _point_colours(point, neutral(colour, lg[view], space), one, zero, int(point.max()) + 1)
+        new, se = view_log_gains(colour, J[point], view, n_views, space)
+        if evidence is None:
+            evidence = exposure_evidence(new, se)
+            if evidence < EXPOSURE_EVIDENCE:
+                return np.zeros((n_views, 3)), evidence
+        done = float(np.abs(new - lg).max()) < 1e-4
+        lg = new
+        if done:
+            break
+    return lg, float(evidence or 0.0)

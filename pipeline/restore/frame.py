@@ -39,7 +39,7 @@ from pipeline.restore.lens import DEFAULT_TOL, LensGrid
 from pipeline.restore.records import RenderedView
 from pipeline.restore.sample import sample_maps
 from pipeline.scene.colour import srgb_to_linear
-from pipeline.scene.exposure import neutral
+from pipeline.scene.exposure import exposed, neutral
 from pipeline.scene.records import Camera, LensCamera
 
 logger = logging.getLogger(__name__)
@@ -268,7 +268,16 @@ class FrameRestorer:
                                    space=self.opt.space, out_max=out_max, scale=scale)
                 wo = w[off][:, None]
                 J[off] = np.rint(wo * Jx[off].astype(np.float32) + (1 - wo) * J[off].astype(np.float32))
-        return J, conf, surface, w, clipped
+        return self.at_survey_exposure(J, out_max), conf, surface, w, clipped
+
+    def at_survey_exposure(self, J: np.ndarray, out_max: int) -> np.ndarray:
+        """The restored rows (integers to ``out_max``, sRGB-encoded) taken from the model's exposure to the
+        survey's mean (``RenderedView.output_log_gain``); as they are without one."""
+        lg = self.view.output_log_gain
+        if lg is None or not np.any(lg):
+            return J
+        x = exposed(J.astype(np.float32) / np.float32(out_max), lg, "srgb")
+        return np.rint(np.clip(x, 0, 1) * out_max).astype(J.dtype)
 
 
 def restore_array(photo: np.ndarray, lens: LensCamera, view: RenderedView,

@@ -58,6 +58,9 @@ class RenderedView:
     # the photo's exposure and white balance, log gains [3] on linear light (pipeline.scene.exposure), removed
     # before it is de-watered; None: taken at neutral exposure
     log_gain: np.ndarray | None = None
+    # log gains [3] on linear light that take the de-watered photo from the model's exposure to the survey's mean
+    # (pipeline.train.photo_exposure.survey_exposure); None: left at the model's
+    output_log_gain: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = (self.camera.height, self.camera.width)

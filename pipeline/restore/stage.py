@@ -32,8 +32,8 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     from pipeline.scene.images import list_images
     from pipeline.synth.ground_truth import find_ground_truth
     from pipeline.train.checkpoint import load_checkpoint
-    from pipeline.train.exposure import photo_gains
     from pipeline.train.model import model_from_state
+    from pipeline.train.photo_exposure import photo_gains, survey_exposure
     from pipeline.train.render import displayed
 
     log = logging.getLogger(__name__)
@@ -53,7 +53,8 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     lenses = lens_cameras(layout.scene)
     photos = {p.name for p in list_images(layout.images)}
     gt = find_ground_truth(opts.source, opts.ground_truth)
-    gains = photo_gains(job, state)  # each photo's exposure, removed before it is de-watered
+    gains = photo_gains(job)  # each photo's exposure, removed before it is de-watered
+    survey = survey_exposure(gains)  # ... and the survey's mean, which the restored photos are given
     renders = {}  # with ground truth: each view's J as displayed, scored against the truth below
     per_view, t_all = [], time.perf_counter()
     for k, view in enumerate(views):
@@ -62,7 +63,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         t0 = time.perf_counter()
         src = layout.images / view.name
         rendered, out, pad = render_for_photo(model, view, lenses[view.name], sigma,  # out to the photo's edges
-                                              log_gain=gains.get(view.name))
+                                              log_gain=gains.get(view.name), survey_log_gain=survey)
         if gt is not None:  # the training camera's render, as restored/ held it before
             J = displayed(out, model.colour_space).J
             renders[view.name] = J[pad:J.shape[0] - pad, pad:J.shape[1] - pad]

@@ -5,30 +5,27 @@ The loss compares the model's (neutral-exposure) image with the view's photo bro
 the water absorb a frame's exposure. The gains have their own Adam; each step updates only the view rendered, then
 the set is made mean-neutral again (a projection, so a step's gradient stays on its view). A small penalty on the
 log gains keeps a view whose content no other view shares at neutral exposure. They start where the water fit put
-them (:mod:`pipeline.medium.exposure_fit`) in medium modes, at 1 in ``3dgs``; with ``TrainConfig.exposure`` "fit"
-(the medium modes' default) they stay there: learned beside the medium, they absorbed its misfit (docs/DECISIONS.md,
-"Exposure per view").
+them (:mod:`pipeline.medium.exposure_fit`) in medium modes; with ``TrainConfig.exposure`` "fit" (the medium modes'
+default) they stay there: learned beside the medium, they absorbed its misfit (docs/DECISIONS.md,
+"Exposure per view"). In ``3dgs`` they start from the sparse points' gains without water
+(:func:`exposure_without_water`). After training every photo's gains are measured again against the model
+(:mod:`pipeline.train.photo_exposure`).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
-from pipeline.job.layout import JobLayout
-from pipeline.medium.estimate import MediumEstimate, gather_observations
-from pipeline.medium.exposure_fit import new_view_gains
+from pipeline.medium.estimate import gather_observations
+from pipeline.medium.exposure_fit import fit_exposure_only
 from pipeline.scene.exposure import neutral
-from pipeline.scene.loader import load_scene
-from pipeline.scene.records import scaled_view
-from pipeline.train.setup import load_training_images
+from pipeline.scene.records import Scene, View
 
 log = logging.getLogger(__name__)
 
@@ -102,36 +99,21 @@ def exposure_record(names: Sequence[str], gains: np.ndarray) -> dict[str, Any]:
             "max_deviation": round(float(np.expm1(dev.max())) if dev.size else 0.0, 4)}
 
 
-__all__ = ["ViewExposure", "exposure_record", "photo_gains"]
+def exposure_without_water(scene: Scene, views: Sequence[View], images: Sequence[Any], space: str
+                           ) -> tuple[list | None, float | None]:
+    """Plain splatting's start: the views' log gains [V, 3] measured from the sparse points with no water between
+    (:func:`~pipeline.medium.exposure_fit.fit_exposure_only`; zero on a fixed camera) and their evidence; (None,
+    None) without sightings. Started at 1, the Gaussians' view-dependent colour took up most of a video's exposure
+    change (RUIE A188: ±5 % learned of ±42 %)."""
+    if not len(scene.points):
+        return None, None
+    obs = gather_observations(scene.points, views, images, scene.sightings)
+    if obs.point.size == 0:
+        return None, None
+    lg, evidence = fit_exposure_only(obs, len(views), space)
+    log.info("exposure from the sparse points without water (evidence %.1f): gains up to %.1f %% from the mean",
+             evidence, 100 * float(np.expm1(np.abs(lg).max())) if lg.size else 0.0)
+    return lg.tolist(), evidence
 
 
-def photo_gains(job: Path, state: dict) -> dict[str, np.ndarray]:
-    """Image name → log gains [3] (linear light) for every photo of the job whose exposure is known: learned (or
-    held) in training, or, for the photos training held out, measured from their sparse points against what the
-    training views' colours and the measured water predict for them (:func:`~pipeline.medium.exposure_fit
-    .new_view_gains`); all re-centred on the survey's mean. Empty when the job did not model exposure."""
-    layout = JobLayout(job)
-    record = (json.loads(layout.train_result.read_text()).get("exposure") or {}) if layout.train_result.exists() else {}
-    gains = {name: np.log(np.asarray(g, dtype=np.float64)) for name, g in (record.get("views") or {}).items()}
-    estimate = (state.get("medium") or {}).get("estimate")
-    if not gains or not estimate or not any(np.any(g) for g in gains.values()):  # none, or a fixed camera
-        return gains
-    scene = load_scene(layout.scene)
-    names = [v.name for v in scene.views]
-    if all(n in gains for n in names) or not len(scene.points):
-        return gains
-    cfg = state["config"]
-    down = int(cfg.get("downscale", 1))
-    space = cfg.get("colour_space", "srgb")
-    images = load_training_images(scene.views, down, space)
-    views = [scaled_view(v, down) for v in scene.views]
-    obs = gather_observations(scene.points, views, [images[i] for i in range(len(views))], scene.sightings)
-    known = {i: gains[n] for i, n in enumerate(names) if n in gains}
-    fields = MediumEstimate.__dataclass_fields__
-    est = MediumEstimate(**{k: v for k, v in estimate.items() if k in fields})
-    for i, lg in new_view_gains(obs, known, est, space).items():
-        gains[names[i]] = lg
-        log.info("exposure of held-out photo %s measured from its sparse points: gains %s", names[i],
-                 np.round(np.exp(lg), 3))
-    mean = np.mean(list(gains.values()), axis=0)  # the survey's mean exposure: over every photo, held out too
-    return {n: g - mean for n, g in gains.items()}
+__all__ = ["ViewExposure", "exposure_record", "exposure_without_water"]

@@ -54,8 +54,15 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
                                                should_cancel=ctx.should_cancel, device=ctx.device)
     except TrainingCancelled as e:
         raise JobCancelled(str(e)) from e
+    exposure = res.exposure
+    if exposure is not None:  # every photo's exposure, measured once against the trained model
+        from pipeline.scene.records import scaled_view
+        from pipeline.train.photo_exposure import job_photo_exposure
+
+        exposure = job_photo_exposure(job, [scaled_view(v, cfg.downscale) for v in scene.views], exposure,
+                                      cfg.backend)
     out = {"mode": cfg.mode, "iterations": res.iteration, "metrics": res.metrics, "history": res.history,
-           "medium": res.medium, "exposure": res.exposure,
+           "medium": res.medium, "exposure": exposure,
            "elapsed_s": res.elapsed_s, "n_gaussians": int(res.gaussians["means"].shape[0]),
            "n_train_views": len(train_views), "n_test_views": len(test_views), "downscale": cfg.downscale,
            "curve_views": [v.name for v in curve_views], "quality": quality, "recovery": recovery,

@@ -33,7 +33,7 @@ from pipeline.scene.records import Scene, View, scaled_view
 from pipeline.splat.densify import Densifier
 from pipeline.splat.gaussians import GAUSSIAN_KEYS
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
-from pipeline.train.exposure import ViewExposure
+from pipeline.train.exposure import ViewExposure, exposure_without_water
 from pipeline.train.hooks import Hook, ProgressFn, checkpoint_hook, eval_hook, log_hook, progress_hook
 from pipeline.train.image_losses import photometric_losses
 from pipeline.train.jit import maybe_compiled, should_compile
@@ -134,13 +134,18 @@ class Trainer:
         self.exposure: ViewExposure | None = None
         if cfg.exposure != "off":  # from the water fit's gains where it measured them, held or learned
             est = (self.medium.estimate or {}) if self.medium is not None else {}
-            init = est.get("log_gains")
-            learn = cfg.exposure == "learn" or init is None or (cfg.exposure == "auto" and self.medium is None)
-            source = ("learned in training" if learn else "the sparse points' fit, held in training"
-                      if np.any(init) else "none: the sparse points showed no change between frames")
+            init, evidence = est.get("log_gains"), est.get("exposure_evidence")
+            if self.medium is None and cfg.exposure != "fit":  # plain splatting: start from the points' gains
+                init, evidence = exposure_without_water(scene, self.views, self.targets, cfg.colour_space)
+            changed = init is not None and bool(np.any(init))
+            learn = cfg.exposure == "learn" or init is None or (cfg.exposure == "auto" and self.medium is None
+                                                                and changed)
+            source = ("learned in training" + (", from the sparse points' gains" if changed else "") if learn
+                      else "the sparse points' fit, held in training" if changed
+                      else "none: the sparse points showed no change between frames")
             self.exposure = ViewExposure(len(self.views), cfg.colour_space, cfg.exposure_lr if learn else 0.0,
                                          cfg.exposure_weight, cfg.iterations, init, self.device, source=source,
-                                         evidence=est.get("exposure_evidence"))
+                                         evidence=evidence)
         self.cameras = [view_tensors(v, self.device) for v in self.views]  # (viewmat [4,4], K [3,3])
         # The coarse start (TrainConfig.coarse_fraction): iterations 1..coarse_until render the views shrunk
         # coarse_downscale times against the targets area-averaged to that size, with the eager losses (a

@@ -62,3 +62,24 @@ def test_the_views_must_be_recorded():
     obs = sightings(np.ones((4, 3)))
     with pytest.raises(ValueError, match="record their views"):
         fit_with_exposure(Observations(obs.point, obs.range, obs.colour), 4)
+
+
+def test_gains_without_water():
+    """Plain splatting's start (fit_exposure_only): sightings with no water between, ±30 % gains recovered; a fixed
+    camera's are held at 1 by the evidence gate."""
+    from pipeline.medium.exposure_fit import EXPOSURE_EVIDENCE, fit_exposure_only
+
+    rng = np.random.default_rng(3)
+    gains = random_gains(12, seed=4)
+    J = rng.uniform(0.15, 0.9, (500, 3))
+    pid = np.repeat(np.arange(500), 4)
+    vid = np.concatenate([rng.choice(12, 4, replace=False) for _ in range(500)])
+    for g, fixed in ((gains, False), (np.ones((12, 3)), True)):
+        seen = np.clip(linear_to_srgb(np.clip(srgb_to_linear(J[pid]) * g[vid], 0, 1))
+                       + rng.normal(0, 0.003, (pid.size, 3)), 0, 1)
+        lg, evidence = fit_exposure_only(Observations(pid, np.ones(pid.size), seen, vid), 12)
+        if fixed:
+            assert evidence < EXPOSURE_EVIDENCE and not lg.any()
+        else:
+            assert evidence > 10 * EXPOSURE_EVIDENCE
+            assert np.abs(np.expm1(lg - np.log(g))).max() < 0.01

@@ -140,3 +140,19 @@ def test_file_keeps_format_and_exif(frame, tmp_path, ext):
     tif = restore_file(src, fr.lens, rv, tmp_path / "tif", tiff16=True)
     buf = oiio.ImageBuf(str(tif.paths["J"]))
     assert buf.spec().format == oiio.UINT16 and buf.spec().get_string_attribute("Make") == "DiveCam"
+
+
+def test_a_photos_exposure_is_removed_and_the_survey_mean_given(frame):
+    """A photo taken at other gains (log_gain: removed before de-watering) restores as the fixed camera's does;
+    with the survey's mean exposure (output_log_gain) the restored photo is that exposure of the same J."""
+    from pipeline.scene.exposure import exposed
+
+    fr, I, J, surf, rv = frame
+    lg, survey = np.log([1.2, 0.9, 1.1]), np.log([1.3, 1.0, 0.75])
+    photo = (np.clip(exposed(I, lg, "srgb"), 0, 1) * 255 + 0.5).astype(np.uint8)
+    res = restore_array(photo, fr.lens, dataclasses.replace(rv, log_gain=lg))
+    m = res.surface & surf
+    assert _psnr(res.J / 255, J, m) > 40  # measured 43.8 dB at neutral exposure
+    out = restore_array(photo, fr.lens, dataclasses.replace(rv, log_gain=lg, output_log_gain=survey))
+    assert _psnr(out.J / 255, np.clip(exposed(J, survey, "srgb"), 0, 1), m) > 40
+    assert _psnr(out.J / 255, J, m) < 35  # not the neutral one
