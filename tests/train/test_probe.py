@@ -294,6 +294,29 @@ def test_auto_picks_3dgs_on_a_photo_seabed_without_water_blurred_with_range(tmp_
     assert sel["drift"]["defined"] and sel["drift"]["score"] < ProbeConfig().no_water_drift, sel["drift"]
 
 
+@pytest.mark.slow
+def test_auto_picks_3dgs_without_water_on_sfm_poses(tmp_path, record_property):
+    """The same scene without water as a user's job sees it: cameras and points from SfM, not the generator's.
+    On SfM poses the points "measured" 0.29 of water (0.05 on the true ones) and the medium won the race by
+    2.8 dB (24 views 320x240); the photos' own drift with range is what says there is none."""
+    from pipeline.config import SfmConfig
+    from pipeline.sfm.recipe import run_sfm
+
+    root = generate_scene(SynthConfig(views=16, width=160, height=120, preset="none", seed=0), tmp_path / "none")
+    run_sfm(root / "images", tmp_path / "sfm", SfmConfig())
+    scene = load_scene(tmp_path / "sfm")
+    train_views, _ = split_views(scene.views)
+    train_scene = scene.subset(train_views)
+    images = load_images(train_scene)
+    water = classify(images[::2]).to_dict()
+    sel = select_mode(tmp_path / "job", _base(train_scene, water), train_scene, images, water, StageContext())
+    record_property("probe", {"chosen": sel["chosen"], "drift": sel["drift"],
+                              "probe": {m: (p["psnr"], p.get("measured_effect")) for m, p in sel["probe"].items()}})
+    assert len(scene.views) >= 14
+    assert sel["chosen"] == "3dgs", sel["reason"]
+    assert sel["drift"]["defined"] and sel["drift"]["score"] < ProbeConfig().no_water_drift / 2, sel["drift"]
+
+
 def test_too_few_views_skip_the_probe(tmp_path):
     from pipeline.config import TrainConfig
     from pipeline.train.probe import select_for_job
