@@ -53,6 +53,7 @@ def probe_scene(root: Path) -> dict:
             "learned": homog.get("effect"), "measured": homog.get("measured_effect"),
             "measurement": homog.get("measurement"), "reason": sel["reason"],
             "scored_alpha": sel.get("probe_setup", {}).get("scored_alpha"),
+            "drift": (sel.get("drift") or {}).get("score"), "drift_defined": (sel.get("drift") or {}).get("defined"),
             "covered": {m: s.get("covered") for m, s in probe.items()},
             "seconds": round(time.perf_counter() - t0, 1)}
 
@@ -67,8 +68,9 @@ def main() -> None:
     for root in args.scenes:
         r = probe_scene(root)
         rows.append(r)
-        log.warning("%s: %s (%s p %.2f; psnr %s; learned %s measured %s [%s]) %.0f s", root, r["chosen"],
-                    r["water_type"], r["p"], r["psnr"], r["learned"], r["measured"], r["measurement"], r["seconds"])
+        log.warning("%s: %s (%s p %.2f; psnr %s; learned %s measured %s [%s]; photos' drift %s) %.0f s", root,
+                    r["chosen"], r["water_type"], r["p"], r["psnr"], r["learned"], r["measured"], r["measurement"],
+                    r["drift"], r["seconds"])
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1))
 
