@@ -226,7 +226,7 @@ def _selection(r: dict) -> str:
     if d.get("score") is not None:
         html += (f"<p>In the photos, the same seabed point's colour changes between near and far sightings by "
                  f"{fmt(d['score'], 3)} of the seabed's contrast (largest channel; water makes it 0.29 or more, "
-                 f"photos without water stay below 0.09)"
+                 f"photos without water stay below 0.12)"
                  + ("" if d.get("defined") else f"; not used: {escape(d.get('reason') or '')}") + ".</p>")
     if no_water_removed(r):
         html += ("<p><b>No water was removed.</b> Mode 3dgs fits the photos as they are, with no model of the "

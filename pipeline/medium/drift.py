@@ -126,7 +126,7 @@ def photo_drift(obs: Observations, min_points: int = MIN_POINTS, min_range_ratio
 
     Water is what makes a surface's colour change with range: without water the same point keeps its colour
     from near and far. Measured (largest channel; 24-view generated scenes and the real sets at the fast preset's
-    training size): without water 0.004-0.007, 0.036-0.086 with a lens's blur growing with range; with water
+    training size): without water 0.003-0.007, 0.019-0.12 with a lens's blur growing with range; with water
     1.2-1.5 (generated clear, medium, turbid), RUIE 0.31 / 0.70 and their first 12 frames 0.29 / 0.81, AIMS
     0.65 / 1.10 (docs/DECISIONS.md, "Automatic mode")."""
     sp = point_slopes(obs)

@@ -74,7 +74,7 @@ class ProbeConfig:
     window: int = 9  # the race compares local means over squares this wide (of a <= max_width image): water changes
     #                  a region's mean colour, a lens's blur or texture averaged at range does not (docs/DECISIONS.md)
     no_water_drift: float = 0.16  # the photos' own drift with range (survey_drift, largest channel) below this: no
-    #  water. Without water 0.004-0.086 (lens blur the most), with water 0.29-1.5 (docs/DECISIONS.md)
+    #  water. Without water 0.003-0.12 (lens blur the most), with water 0.29-1.5 (docs/DECISIONS.md)
     min_measured_effect: float = 0.22  # water the points measured: below it (when they did measure it) a won race
     #  is not enough, at or above it a lost race is outranked. Generated scenes without water 0.10-0.20 (0.197 with
     #  a lens's defocus); real RUIE A188 0.25-0.27, B571 0.46-0.70; generated clear water 0.47 (docs/DECISIONS.md)
@@ -220,7 +220,7 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
     if drift and drift.get("defined") and drift["score"] < cfg.no_water_drift:
         return "3dgs", (f"the photos show no water: between near and far sightings the same seabed point's colour "
                         f"changes by {drift['score']:.3f} of the seabed's contrast at most (< {cfg.no_water_drift:g};"
-                        f" water makes it 0.29-1.5, lens blur without water up to 0.09; ranges "
+                        f" water makes it 0.29-1.5, lens blur without water up to 0.12; ranges "
                         f"{drift['range_ratio']:.2f}x): plain splatting. {detail}")
     media = {m: s for m, s in scores.items() if s.effect is not None}
     covered = max((s.covered for s in scores.values()), default=0.0)
