@@ -254,3 +254,17 @@ def test_quality_names_the_runs_cap_when_it_is_above_the_budget():
     assert "(budget 56,763; the run&#x27;s cap 100,000)" in _quality(q)  # the line is HTML-escaped
     assert "(budget 56,763)" in _quality({**q, "cap": 56_763})
     assert "(budget 56,763)" in _quality({k: v for k, v in q.items() if k != "cap"})  # jobs from before the cap
+
+
+def test_selection_says_how_much_the_photos_drift_with_range():
+    """The photos' own drift (the auto mode's no-water test) is a sentence in report.html; undefined, with why."""
+    from pipeline.evaluate.report_html import _selection
+
+    r = {"mode": "3dgs", "water": None, "selection": {"mode": "3dgs", "reason": "the photos show no water",
+                                                      "drift": {"defined": True, "score": 0.004}}}
+    html = _selection(r)
+    assert "changes between near and far sightings by 0.004 of the seabed's contrast" in html
+    r["selection"]["drift"] = {"defined": False, "score": 0.02, "reason": "the sightings' ranges span only 1.05x"}
+    assert "not used: the sightings&#x27; ranges span only 1.05x" in _selection(r)
+    r["selection"].pop("drift")
+    assert "near and far" not in _selection(r)
