@@ -42,6 +42,7 @@ from pipeline.medium.drift import (
     MIN_POINTS,
     channel_drift,
     point_slopes,
+    range_span,
 )
 from pipeline.medium.estimate import Observations
 
@@ -73,9 +74,7 @@ def colour_consistency(photo: Observations, restored: Observations, min_points: 
         out["reason"] = (f"only {len(sp.point)} sparse points were seen at clearly different ranges (farthest "
                          f"sighting at least {MIN_POINT_RANGE_RATIO}x the nearest); {min_points} are needed")
         return out
-    q10, q90 = np.percentile(photo.range[keep], [10, 90])
-    out["range_ratio"] = float(q90 / max(q10, 1e-12))
-    out["range_spread"] = float(q90 - q10)
+    out["range_ratio"], out["range_spread"] = range_span(photo, sp.point)
     p = channel_drift(sp, out["range_spread"])
     r = channel_drift(sr, out["range_spread"])
     out["photo"], out["restored"] = p.to_dict(), r.to_dict()

@@ -129,11 +129,12 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
     layout = JobLayout(job)
     lenses = lens_cameras(layout.scene)
     sigma = job_water_sigma(job)
+    survey = survey_exposure(gains)
     for v in views:  # out/ gets the job's own folder names for them
         restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
                       lenses[v.name], render_for_photo(model, v, lenses[v.name], sigma,
-                                                       log_gain=gains.get(v.name),
-                                                       survey_log_gain=survey_exposure(gains))[0], max_gain=max_gain,
+                                                       log_gain=gains.get(v.name), survey_log_gain=survey)[0],
+                      max_gain=max_gain,
                       fmt=fmt, space=model.colour_space)
     return len(views)
 

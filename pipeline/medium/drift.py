@@ -117,6 +117,13 @@ def channel_drift(s: PointSlopes, range_spread: float) -> ChannelDrift:
     return ChannelDrift(**out)
 
 
+def range_span(obs: Observations, points: np.ndarray) -> tuple[float, float]:
+    """(90th / 10th percentile ratio, 90th − 10th difference) of the ranges of ``obs``'s sightings of ``points``
+    (the points seen at clearly different ranges): how far the survey's scored sightings reach, Δr of step 3."""
+    q10, q90 = np.percentile(obs.range[np.isin(obs.point, points)], [10, 90])
+    return float(q90 / max(q10, 1e-12)), float(q90 - q10)
+
+
 def photo_drift(obs: Observations, min_points: int = MIN_POINTS, min_range_ratio: float = 1.2) -> dict:
     """The photos' own drift with range (``obs``: sightings with the photos' sRGB colours at neutral exposure):
     ``score`` = the largest over the channels of drift / contrast (steps 1-4), ``scores`` per channel,
@@ -136,10 +143,9 @@ def photo_drift(obs: Observations, min_points: int = MIN_POINTS, min_range_ratio
         out["reason"] = (f"only {len(sp.point)} sparse points were seen at clearly different ranges "
                          f"({min_points} needed)")
         return out
-    keep = np.isin(obs.point, sp.point)
-    q10, q90 = np.percentile(obs.range[keep], [10, 90])
-    out["range_ratio"] = round(float(q90 / max(q10, 1e-12)), 3)
-    d = channel_drift(sp, float(q90 - q10))
+    ratio, spread = range_span(obs, sp.point)
+    out["range_ratio"] = round(ratio, 3)
+    d = channel_drift(sp, spread)
     if any(s is None for s in d.score):
         out["reason"] = "the photos' colours at the sparse points do not differ in some channel (no contrast)"
         return out

@@ -36,9 +36,12 @@ SHRINK_SIGHTINGS = 1.0  # a view's gain is shrunk by n / (n + this) towards 1 (n
 DARK = 0.01  # linear light: sightings darker than this (predicted or seen) carry no exposure information
 
 
-def _water(r: np.ndarray, est: MediumEstimate) -> tuple[np.ndarray, np.ndarray]:
-    """The water's transmission e^(−β_D r) and veil B∞(1 − e^(−β_B r)) at ranges ``r`` [M]. ([M, 3], [M, 3])"""
+def _water(r: np.ndarray, est: MediumEstimate | None) -> tuple[np.ndarray, np.ndarray]:
+    """The water's transmission e^(−β_D r) and veil B∞(1 − e^(−β_B r)) at ranges ``r`` [M]; None: no water (1 and
+    0). ([M, 3], [M, 3])"""
     r = np.asarray(r, np.float64)[:, None]
+    if est is None:
+        return np.ones((len(r), 3)), np.zeros((len(r), 3))
     return np.exp(-np.asarray(est.beta_D) * r), np.asarray(est.B_inf) * (1 - np.exp(-np.asarray(est.beta_B) * r))
 
 
@@ -61,10 +64,10 @@ def _usable(seen: np.ndarray, predicted: np.ndarray) -> np.ndarray:
     return (seen > DARK) & (predicted > DARK) & (seen < 0.99)
 
 
-def predicted_colours(obs: Observations, est: MediumEstimate) -> np.ndarray:
-    """What the fitted water predicts for each sighting, with each point's colour J solved in closed form from its
-    sightings (the fit's variable projection): ``J_p·e^(−β_D r) + B∞(1 − e^(−β_B r))``. Sightings of points seen
-    once are NaN (they carry no range information and were not fitted). [M, 3]"""
+def predicted_colours(obs: Observations, est: MediumEstimate | None) -> np.ndarray:
+    """What the fitted water (None: no water) predicts for each sighting, with each point's colour J solved in
+    closed form from its sightings (the fit's variable projection): ``J_p·e^(−β_D r) + B∞(1 − e^(−β_B r))``.
+    Sightings of points seen once are NaN (they carry no range information and were not fitted). [M, 3]"""
     counts = np.bincount(obs.point) if obs.point.size else np.zeros(0, np.int64)
     keep = counts[obs.point] >= 2
     out = np.full(obs.colour.shape, np.nan)
@@ -114,6 +117,22 @@ def exposure_evidence(lg: np.ndarray, se: np.ndarray) -> float:
     return float(((lg[ok] / se[ok]) ** 2).sum() / (3 * (ok.sum() - 1)))
 
 
+def _gains_under(obs: Observations, est: MediumEstimate | None, lg: np.ndarray, n_views: int, space: str,
+                 steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``steps`` alternations, the water ``est`` held (None: no water), of the points' colours at neutral
+    exposure and the views' gains (:func:`view_log_gains`) from ``lg``; (the gains, their standard errors)."""
+    se = np.full((n_views, 3), np.inf)
+    for _ in range(steps):
+        pred = predicted_colours(replace(obs, colour=neutral(obs.colour, lg[obs.view], space)), est)
+        # the prediction is at neutral exposure: a view's gains are what take it to the photo
+        new, se = view_log_gains(obs.colour, pred, obs.view, n_views, space)
+        done = float(np.abs(new - lg).max()) < 1e-4
+        lg = new
+        if done:
+            break
+    return lg, se
+
+
 def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Sequence[float] = (0.8, 0.3, 0.25),
                       space: str = "srgb") -> tuple[MediumEstimate | None, np.ndarray]:
     """The water (:func:`fit_medium`) and each view's exposure log gains [V, 3] (linear light, mean-neutral),
@@ -130,14 +149,7 @@ def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Seque
         if est is None:
             return None, np.zeros((n_views, 3))
         first = first or est
-        for _ in range(INNER):
-            pred = predicted_colours(replace(obs, colour=neutral(obs.colour, lg[obs.view], space)), est)
-            # the prediction is at neutral exposure: a view's gains are what take it to the photo
-            new, se = view_log_gains(obs.colour, pred, obs.view, n_views, space)
-            done = float(np.abs(new - lg).max()) < 1e-4
-            lg = new
-            if done:
-                break
+        lg, se = _gains_under(obs, est, lg, n_views, space, INNER)
         if k == 0:
             evidence = exposure_evidence(lg, se)
             if evidence < EXPOSURE_EVIDENCE:  # a fixed camera: the gains are the fit's noise
@@ -154,28 +166,13 @@ def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Seque
 def fit_exposure_only(obs: Observations, n_views: int, space: str = "srgb") -> tuple[np.ndarray, float]:
     """Each view's exposure log gains [V, 3] (mean-neutral) from the sightings with no water between: a point's
     colour is the same in every view but for the view's gains (the start of plain splatting's learned gains,
-    ``3dgs``); and their :func:`exposure_evidence` (the first pass's). Zero gains below
+    ``3dgs``); and their :func:`exposure_evidence` after the first round. Zero gains below
     :data:`EXPOSURE_EVIDENCE`, as :func:`fit_with_exposure` holds them."""
     if obs.view is None:
         raise ValueError("the sightings must record their views to fit exposure")
-    counts = np.bincount(obs.point) if obs.point.size else np.zeros(0, np.int64)
-    keep = counts[obs.point] >= 2
-    lg = np.zeros((n_views, 3))
-    if not keep.any():
-        return lg, 0.0
-    _, point = np.unique(obs.point[keep], return_inverse=True)
-    colour, view = obs.colour[keep], obs.view[keep]
-    one, zero = np.ones_like(colour), np.zeros_like(colour)
-    evidence = None
-    for _ in range(ROUNDS * INNER):
-        J = _point_colours(point, neutral(colour, lg[view], space), one, zero, int(point.max()) + 1)
-        new, se = view_log_gains(colour, J[point], view, n_views, space)
-        if evidence is None:
-            evidence = exposure_evidence(new, se)
-            if evidence < EXPOSURE_EVIDENCE:
-                return np.zeros((n_views, 3)), evidence
-        done = float(np.abs(new - lg).max()) < 1e-4
-        lg = new
-        if done:
-            break
-    return lg, float(evidence or 0.0)
+    zero = np.zeros((n_views, 3))
+    lg, se = _gains_under(obs, None, zero, n_views, space, INNER)
+    evidence = exposure_evidence(lg, se)
+    if evidence < EXPOSURE_EVIDENCE:
+        return zero, evidence
+    return _gains_under(obs, None, lg, n_views, space, (ROUNDS - 1) * INNER)[0], evidence

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from pipeline.medium.estimate import MediumEstimate, fit_medium, gather_observations
+from pipeline.medium.estimate import MediumEstimate, Observations, fit_medium, gather_observations
 from pipeline.medium.exposure_fit import fit_with_exposure
 from pipeline.scene.records import Sightings, View
 
@@ -24,7 +24,13 @@ def measure_water(points: np.ndarray, views: Sequence[View], images: Sequence[np
     ``exposure_space`` ("srgb" or "linear": the images' space) each view's exposure is fitted beside the water
     (:func:`~pipeline.medium.exposure_fit.fit_with_exposure`, the estimate's ``log_gains`` in the order of
     ``views``)."""
-    obs = gather_observations(points, views, images, sightings)
+    return measure_observed(gather_observations(points, views, images, sightings), len(views), init_optical_depth,
+                            exposure_space)
+
+
+def measure_observed(obs: Observations, n_views: int, init_optical_depth: Sequence[float],
+                     exposure_space: str | None = None) -> MediumEstimate | None:
+    """:func:`measure_water` of sightings already gathered (``n_views``: the views they index)."""
     h = hashlib.sha1(str(exposure_space).encode())
     for a in (obs.point, obs.range, obs.colour, obs.view, np.asarray(init_optical_depth, dtype=np.float64)):
         h.update(np.ascontiguousarray(a).tobytes())
@@ -35,5 +41,5 @@ def measure_water(points: np.ndarray, views: Sequence[View], images: Sequence[np
         if exposure_space is None:
             _CACHE[key] = fit_medium(obs, init_optical_depth)
         else:
-            _CACHE[key] = fit_with_exposure(obs, len(views), init_optical_depth, exposure_space)[0]
+            _CACHE[key] = fit_with_exposure(obs, n_views, init_optical_depth, exposure_space)[0]
     return _CACHE[key]

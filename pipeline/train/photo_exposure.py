@@ -31,8 +31,10 @@ import numpy as np
 from pipeline.job.layout import JobLayout
 from pipeline.scene.colour import srgb_to_linear
 from pipeline.scene.exposure import exposed
+from pipeline.scene.loader import load_view_image
 from pipeline.scene.records import View
-from pipeline.train.model import TrainedModel
+from pipeline.train.checkpoint import load_checkpoint
+from pipeline.train.model import TrainedModel, model_from_state
 from pipeline.train.render import displayed, render_outputs
 
 log = logging.getLogger(__name__)
@@ -111,10 +113,6 @@ def job_photo_exposure(job: Path, views: Sequence[View], record: dict[str, Any],
     .exposure.exposure_record`) with every photo of ``views`` (the job's cameras at the training size) measured
     against the model in the job's checkpoint: ``photos`` (name → gains) and ``measured`` (how). A job whose points
     showed no change between frames gets gains of 1 for every photo."""
-    from pipeline.scene.loader import load_view_image
-    from pipeline.train.checkpoint import load_checkpoint
-    from pipeline.train.model import model_from_state
-
     if str(record.get("source", "")).startswith("none"):
         return {**record, "photos": {v.name: [1.0, 1.0, 1.0] for v in views},
                 "measured": {"method": "none: the sparse points showed no change between frames"}}

@@ -36,7 +36,7 @@ from pipeline.config import TrainConfig, rescheduled, to_dict
 from pipeline.job.layout import SELECTION_NAME
 from pipeline.medium.drift import photo_drift
 from pipeline.medium.estimate import MediumEstimate, gather_observations
-from pipeline.medium.measure import measure_water
+from pipeline.medium.measure import measure_observed
 from pipeline.scene.colour import linear_to_srgb
 from pipeline.scene.exposure import neutral
 from pipeline.scene.records import Scene, View, scaled_view, view_ranges
@@ -171,8 +171,7 @@ def survey_drift(scene: Scene, images: Sequence[Any], base: TrainConfig) -> dict
     frames = [images[i] for i in range(len(views))]
     space = base.colour_space
     obs = gather_observations(scene.points, views, frames, scene.sightings)
-    est = measure_water(scene.points, views, frames, scene.sightings, base.medium.init_optical_depth,
-                        space if base.exposure != "off" else None)
+    est = measure_observed(obs, len(views), base.medium.init_optical_depth, space if base.exposure != "off" else None)
     colour = obs.colour
     if est is not None and est.log_gains is not None and obs.view is not None:
         colour = neutral(colour, np.asarray(est.log_gains)[obs.view], space)
