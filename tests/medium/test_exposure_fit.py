@@ -83,3 +83,58 @@ def test_gains_without_water():
         else:
             assert evidence > 10 * EXPOSURE_EVIDENCE
             assert np.abs(np.expm1(lg - np.log(g))).max() < 0.01
+
+
+def banded_sightings(gains: np.ndarray, seed: int = 5, points: int = 800, noise: float = 0.003) -> Observations:
+    """Sightings on linear light (the job's physics) where each view sits at its own distance: view k sees its
+    points at 1.5-5 (near to far over the views) ± 0.4, so a view's gain and the water over its mean range look
+    alike, and only the ranges within a view tell them apart."""
+    rng = np.random.default_rng(seed)
+    n_views = len(gains)
+    J = rng.uniform(0.05, 0.6, (points, 3))
+    pid, vid = np.repeat(np.arange(points), 4), np.concatenate([rng.choice(n_views, 4, replace=False)
+                                                               for _ in range(points)])
+    r = 1.5 + 3.5 * vid / (n_views - 1) + rng.uniform(-0.4, 0.4, pid.size)
+    water = J[pid] * np.exp(-BETA_D * r[:, None]) + B_INF * (1 - np.exp(-BETA_B * r[:, None]))
+    seen = np.clip(water * gains[vid] + rng.normal(0, noise, water.shape), 0, 1)
+    return Observations(pid, r, seen, vid)
+
+
+def test_joint_fit_separates_gains_from_range():
+    """Where each view has its own distance, the gains and the water are fitted jointly: β_D and the gains come
+    back as a fit at the true gains gives them."""
+    gains = random_gains(16, seed=6)
+    obs = banded_sightings(gains)
+    est, lg = fit_with_exposure(obs, 16, init_optical_depth=(1.2, 0.5, 0.6), space="linear")
+    known = fit_medium(Observations(obs.point, obs.range, obs.colour / gains[obs.view], obs.view), (1.2, 0.5, 0.6))
+    assert est is not None and known is not None
+    err = np.abs(np.expm1(lg - np.log(gains)))
+    assert err.max() < 0.02, err.max()
+    np.testing.assert_allclose(est.beta_D, known.beta_D, rtol=0.05)
+
+
+def test_joint_loss_is_the_weighted_misfit():
+    """joint_loss at zero gains is fit_medium's own misfit (_channel_loss); a view's gain scales its residuals
+    on the recorded values (linear: w = g)."""
+    import torch
+
+    from pipeline.medium.estimate import _channel_loss
+    from pipeline.medium.exposure_fit import joint_loss
+
+    obs = sightings(np.ones((4, 3)), seed=7, points=50)
+    t = lambda a: torch.as_tensor(a)  # noqa: E731
+    theta = torch.tensor([np.log(0.4), np.log(0.3), 0.2], dtype=torch.float64)
+    x = torch.cat([theta, torch.zeros(4, dtype=torch.float64)])
+    ref = _channel_loss(theta, t(obs.point), 50, t(obs.range), t(obs.colour[:, 1]))[0]
+    for space in ("linear", "srgb"):
+        got = joint_loss(x, t(obs.point), 50, t(obs.range), t(obs.colour[:, 1]), t(obs.view), space)
+        assert float(got) == pytest.approx(float(ref), rel=1e-9)
+    # one view twice as bright, on linear light: n is the sighting at neutral exposure, and its misfit counts as
+    # the recorded value's (w = g), each point's J the weighted least-squares one
+    g = np.array([2.0, 1.0, 1.0, 1.0])[obs.view]
+    c = obs.colour[:, 1]
+    got = joint_loss(torch.cat([theta, torch.tensor([np.log(2.0), 0, 0, 0], dtype=torch.float64)]), t(obs.point), 50,
+                     t(obs.range), t(c * g), t(obs.view), "linear")
+    a, b = np.exp(-0.4 * obs.range), 1 / (1 + np.exp(-0.2)) * (1 - np.exp(-0.3 * obs.range))
+    J = np.clip(np.bincount(obs.point, g**2 * a * (c - b)) / np.bincount(obs.point, g**2 * a * a), 0, 1)
+    assert float(got) == pytest.approx(float(np.mean((g * (J[obs.point] * a + b - c)) ** 2)), rel=1e-9)
