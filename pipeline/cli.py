@@ -53,6 +53,24 @@ def _distortion(text: str) -> tuple[float, float]:
     return k1, k2
 
 
+def _altitude(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"altitude must look like 2.4,2.6 (min,max metres), got {text!r}") from None
+    if not 0 < lo <= hi:
+        raise argparse.ArgumentTypeError(f"altitude must be 0 < min <= max, got {text!r}")
+    return lo, hi
+
+
+def _fraction(text: str) -> float:
+    try:
+        f = float(text)
+    except ValueError:
+        f = -1.0
+    if not 0 <= f < 1:
+        raise argparse.ArgumentTypeError(f"a fraction in [0, 1) is needed, got {text!r}")
+    return f
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -66,8 +84,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
             print("dualphys synth: --path applies to the procedural family only (the photo family flies its "
                   "own lawnmower + oblique survey)", file=sys.stderr)
             return 2
+        path = {k: v for k, v in (("altitude_range", args.altitude), ("oblique_fraction", args.oblique))
+                if v is not None}
         photo = PhotoSynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed,
-                                 distortion=args.distortion, water_space=args.water_space)
+                                 distortion=args.distortion, water_space=args.water_space, **path)
         try:
             out = generate_photo_scene(photo, args.out)
         except (TextureFolderError, ValueError) as e:
@@ -78,6 +98,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
         from pipeline.config import SynthConfig
         from pipeline.synth.procedural import generate_scene
 
+        if args.altitude is not None or args.oblique is not None:
+            print("dualphys synth: --altitude and --oblique apply to the photo family only", file=sys.stderr)
+            return 2
         cfg = SynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed, path=args.path,
                           distortion=args.distortion, water_space=args.water_space)
         try:
@@ -345,6 +368,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="radial lens distortion (COLMAP RADIAL k1,k2), e.g. --distortion=-0.15,0 (with =: a "
                         "leading minus reads as an option otherwise); pinhole companions go to pinhole/ "
                         "(pipeline.synth.lens)")
+    s.add_argument("--altitude", type=_altitude, default=None, metavar="MIN,MAX",
+                   help="photo family: the lawnmower lines' altitude range in metres (default 1.9,3.2); e.g. "
+                        "2.4,2.6 with --oblique 0 is a survey at nearly constant range")
+    s.add_argument("--oblique", type=_fraction, default=None, metavar="FRACTION",
+                   help="photo family: share of the views in the oblique pass (default 0.25; 0 = none)")
     s.add_argument("--water-space", default="srgb", choices=["srgb", "linear"],
                    help="srgb: water applied to J as written; linear: to sRGB-decoded J, re-encoded after")
     s.add_argument("--defocus", type=float, default=0.0, metavar="PX",

@@ -231,3 +231,23 @@ def test_march_matches_a_dense_brute_force_reference():
     # The reference is exact to its 1 mm step; the marcher may skip a crossing narrower than a fine step.
     close = (t - ref).abs() < 0.0011
     assert close.float().mean() > 0.97
+
+
+@needs_photos
+def test_cli_synth_a_survey_at_constant_range(tmp_path, capsys):
+    """--altitude and --oblique: lawnmower lines at 2.4-2.6 m and no oblique pass, so every view sees the seabed
+    from about the same distance (the narrow-range case of the water fit); they are the photo family's only."""
+    from pipeline.cli import main
+    from pipeline.scene.colmap import read_colmap
+
+    out = tmp_path / "narrow"
+    assert main(["synth", "--family", "photo", "--out", str(out), "--views", "6", "--size", "48x36",
+                 "--altitude", "2.4,2.6", "--oblique", "0"]) == 0
+    gen = json.loads((out / "water.json").read_text())["generator"]
+    assert gen["altitude_range"] == [2.4, 2.6] and gen["oblique_fraction"] == 0
+    model = read_colmap(out / "sparse_gt", out / "images")
+    heights = np.array([v.center[2] for v in model.views])
+    assert heights.min() >= 2.4 - 0.031 and heights.max() <= 2.6 + 0.031  # the path's ±3 cm jitter
+    assert main(["synth", "--out", str(tmp_path / "p"), "--altitude", "2,3"]) == 2
+    with pytest.raises(SystemExit):
+        main(["synth", "--family", "photo", "--out", str(tmp_path / "q"), "--oblique", "1.5"])
