@@ -31,6 +31,7 @@ from pipeline.scene.colour import srgb_to_linear
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.scene.records import ray_length_factor
+from pipeline.synth.ground_truth import load_ground_truth
 from pipeline.train.setup import load_training_images
 from pipeline.water import classify
 
@@ -67,7 +68,7 @@ def dense_dark_pixels(root: Path, b_inf: np.ndarray, beta_b: np.ndarray) -> list
 
 
 def measure(root: Path, model_root: Path | None) -> dict:
-    truth = json.loads((root / "water.json").read_text())
+    truth = load_ground_truth(root).water
     b_inf, beta_b = np.asarray(truth["B_inf"]), np.asarray(truth["beta_B"])
     scene = load_scene(model_root or root)
     m_per_unit = align_to_reference(scene, load_scene(root))["scale"] if model_root else 1.0
