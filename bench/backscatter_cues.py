@@ -24,36 +24,36 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from pipeline.medium.estimate import fit_medium, gather_observations
+from pipeline.medium.formation import homogeneous_backscatter
 from pipeline.scene.align import align_to_reference
 from pipeline.scene.colour import srgb_to_linear
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.scene.records import ray_length_factor
-from pipeline.synth.ground_truth import load_ground_truth
+from pipeline.synth.ground_truth import GroundTruth, load_ground_truth
 from pipeline.train.setup import load_training_images
 from pipeline.water import classify
+from pipeline.water.stage import classify_pick
 
-log = logging.getLogger("bench.backscatter_cues")
 PERCENTILE = 1.0  # the dark-pixel cue's percentile
 RANGE_BINS = 6
-CLASSIFY_IMAGES = 8
 
 
-def veil(b_inf: np.ndarray, beta_b: np.ndarray, r: np.ndarray | float) -> np.ndarray:
-    """B(r) = B∞(1 − e^(−β_B r)) [..., 3] at ranges ``r`` [...]."""
-    r = np.asarray(r, dtype=np.float64)[..., None]
-    return b_inf * (1 - np.exp(-beta_b * r))
+def veil(b_inf: np.ndarray, beta_b: np.ndarray, r: float) -> np.ndarray:
+    """The veil at range ``r``, paper eq. 6 (:func:`~pipeline.medium.formation.homogeneous_backscatter`). [3]"""
+    d = torch.full((1, 1, 1, 1), float(r), dtype=torch.float64)
+    return homogeneous_backscatter(d, torch.as_tensor(beta_b), torch.as_tensor(b_inf)).reshape(3).numpy()
 
 
-def dense_dark_pixels(root: Path, b_inf: np.ndarray, beta_b: np.ndarray) -> list[list[float]]:
+def dense_dark_pixels(gt: GroundTruth, b_inf: np.ndarray, beta_b: np.ndarray) -> list[list[float]]:
     """Per range bin of the true depth (pooled over views): the relative error of the photos' low percentile as
     the veil at the bin's median range. [bins][3]"""
-    scene = load_scene(root)
     ranges, pixels = [], []
-    for v in scene.views:
-        z = np.load(root / "depth" / f"{Path(v.name).stem}.npy")
+    for v in gt.scene.views:
+        z = np.load(gt.root / "depth" / f"{Path(v.name).stem}.npy")
         hit = z < 999
         ranges.append((z * ray_length_factor(v.camera))[hit])
         pixels.append(srgb_to_linear(read_image(v.image_path).astype(np.float64))[hit])
@@ -68,12 +68,11 @@ def dense_dark_pixels(root: Path, b_inf: np.ndarray, beta_b: np.ndarray) -> list
 
 
 def measure(root: Path, model_root: Path | None) -> dict:
-    truth = load_ground_truth(root).water
-    b_inf, beta_b = np.asarray(truth["B_inf"]), np.asarray(truth["beta_B"])
-    scene = load_scene(model_root or root)
-    m_per_unit = align_to_reference(scene, load_scene(root))["scale"] if model_root else 1.0
-    pick = scene.views[:: max(1, len(scene.views) // CLASSIFY_IMAGES)][:CLASSIFY_IMAGES]
-    tau = classify([read_image(v.image_path) for v in pick]).settings.init_optical_depth
+    gt = load_ground_truth(root)
+    b_inf, beta_b = np.asarray(gt.water["B_inf"]), np.asarray(gt.water["beta_B"])
+    scene = load_scene(model_root) if model_root else gt.scene
+    m_per_unit = align_to_reference(scene, gt.scene)["scale"] if model_root else 1.0
+    tau = classify([read_image(v.image_path) for v in classify_pick(scene.views)]).settings.init_optical_depth
     images = load_training_images(scene.views, 1, "linear")
     photos = [images[i].numpy() for i in range(len(scene.views))]
     obs = gather_observations(scene.points, scene.views, photos, scene.sightings)
@@ -96,7 +95,7 @@ def measure(root: Path, model_root: Path | None) -> dict:
             "veil_at_median_range": (veil(fit_b_inf, fit_beta_b, r_med) / veil(b_inf, beta_b, r_med) - 1).round(3)
             .tolist(),
             "B_inf_source": est.uncertainty["B_inf"]["source"] if est.uncertainty else None},
-        "dark_pixels_dense": np.round(dense_dark_pixels(root, b_inf, beta_b), 3).tolist(),
+        "dark_pixels_dense": np.round(dense_dark_pixels(gt, b_inf, beta_b), 3).tolist(),
         "dark_pixels_per_view": {"median": np.median(pv, 0).round(3).tolist(), "std": pv.std(0).round(3).tolist()},
     }
 

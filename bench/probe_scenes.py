@@ -25,17 +25,16 @@ from pipeline.train.probe import select_for_job
 from pipeline.train.resolve import resolve_train_config, training_downscale
 from pipeline.train.setup import load_training_images
 from pipeline.water import classify
+from pipeline.water.stage import classify_pick
 
 log = logging.getLogger("bench.probe_scenes")
-CLASSIFY_IMAGES = 8
 
 
 def probe_scene(root: Path) -> dict:
     t0 = time.perf_counter()
     scene = load_scene(root, workdir=Path(tempfile.mkdtemp(prefix="probe-undist-")))
     views = scene.views
-    pick = views[:: max(1, len(views) // CLASSIFY_IMAGES)][:CLASSIFY_IMAGES]
-    water = classify([read_image(v.image_path) for v in pick]).to_dict()
+    water = classify([read_image(v.image_path) for v in classify_pick(views)]).to_dict()
     train_views, _ = split_views(views)
     train_scene = scene.subset(train_views)
     opts = JobOptions(source=str(root), preset="fast")

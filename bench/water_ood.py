@@ -37,7 +37,7 @@ from pipeline.water.decision import images_to_tensor
 from pipeline.water.features import image_features, resize_short_side
 from pipeline.water.ood import clipped_fraction, illumination_falloff, mean_luma
 from pipeline.water.sampling import camera_nuisance, sample_water, seabed_variation
-from pipeline.water.stage import CLASSIFY_IMAGES
+from pipeline.water.stage import classify_pick
 from pipeline.water.training import ClassifierTrainConfig
 
 log = logging.getLogger("bench.water_ood")
@@ -45,11 +45,6 @@ log = logging.getLogger("bench.water_ood")
 REAL_SETS = {"RUIE A188": "ruie-A188-A206/images", "RUIE B571": "ruie-B571-B597/images",
              "U45 blue": "u45/blue", "U45 green": "u45/green", "U45 haze": "u45/haze",
              "AIMS Erub (held out)": "aims-erub-mt81/images", "AIMS Ugar (held out)": "aims-ugar-mt3a/images"}
-
-
-def stage_pick(paths: list[Path]) -> list[Path]:
-    """The classify stage's choice of frames (pipeline.water.stage)."""
-    return paths[:: max(1, len(paths) // CLASSIFY_IMAGES)][:CLASSIFY_IMAGES]
 
 
 def per_frame(images: list[np.ndarray]) -> dict[str, np.ndarray]:
@@ -131,7 +126,7 @@ def main() -> None:
     photos = {}
     for name, sub in REAL_SETS.items():
         paths = sorted(p for p in (args.real / sub).iterdir() if p.is_file())
-        photos[name] = [read_image(p) for p in stage_pick(paths)]
+        photos[name] = [read_image(p) for p in classify_pick(paths)]
         lines.append(row(name, photos[name]))
     for name in REAL_SETS:
         small = [resize_short_side(images_to_tensor(p))[0].permute(1, 2, 0).numpy() for p in photos[name]]

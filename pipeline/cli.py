@@ -45,19 +45,21 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _distortion(text: str) -> tuple[float, float]:
+def _pair(text: str, what: str, example: str) -> tuple[float, float]:
+    """Two numbers written ``a,b``; an argparse error naming ``what`` and an ``example`` otherwise."""
     try:
-        k1, k2 = (float(x) for x in text.split(","))
+        a, b = (float(x) for x in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"distortion must look like -0.15,0.02 (k1,k2), got {text!r}") from None
-    return k1, k2
+        raise argparse.ArgumentTypeError(f"{what} must look like {example}, got {text!r}") from None
+    return a, b
+
+
+def _distortion(text: str) -> tuple[float, float]:
+    return _pair(text, "distortion", "-0.15,0.02 (k1,k2)")
 
 
 def _altitude(text: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"altitude must look like 2.4,2.6 (min,max metres), got {text!r}") from None
+    lo, hi = _pair(text, "altitude", "2.4,2.6 (min,max metres)")
     if not 0 < lo <= hi:
         raise argparse.ArgumentTypeError(f"altitude must be 0 < min <= max, got {text!r}")
     return lo, hi

@@ -134,8 +134,7 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
         restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
                       lenses[v.name], render_for_photo(model, v, lenses[v.name], sigma,
                                                        log_gain=gains.get(v.name), survey_log_gain=survey)[0],
-                      max_gain=max_gain,
-                      fmt=fmt, space=model.colour_space)
+                      max_gain=max_gain, fmt=fmt, space=model.colour_space)
     return len(views)
 
 

@@ -3,12 +3,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TypeVar
 
 from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions, StageContext
 
+T = TypeVar("T")
+
 CLASSIFY_IMAGES = 8  # images (evenly spaced by name) the water classifier averages over
+
+
+def classify_pick(items: Sequence[T]) -> list[T]:
+    """The :data:`CLASSIFY_IMAGES` of ``items`` (in name order) the classifier looks at: evenly spaced."""
+    return list(items[:: max(1, len(items) // CLASSIFY_IMAGES)][:CLASSIFY_IMAGES])
 
 
 def stage_classify(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
@@ -18,7 +27,6 @@ def stage_classify(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
     layout = JobLayout(job)
     names = sorted(p for p in layout.images.iterdir() if p.is_file())
-    pick = names[:: max(1, len(names) // CLASSIFY_IMAGES)][:CLASSIFY_IMAGES]
-    decision = classify([read_image(p) for p in pick]).to_dict()
+    decision = classify([read_image(p) for p in classify_pick(names)]).to_dict()
     atomic_write_json(layout.classify, decision)
     return decision
