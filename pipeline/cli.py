@@ -121,6 +121,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
         expose_scene(out, args.exposure, args.white_balance, args.seed)
         extra.update(exposure=args.exposure, white_balance=args.white_balance)
+    if args.fall_off > 0:
+        from pipeline.synth.exposure import fall_off_scene
+
+        fall_off_scene(out, args.fall_off)
+        extra.update(fall_off=args.fall_off)
     print(json.dumps({"out": str(out), "family": args.family, "views": views, "preset": preset, **extra,
                       "seconds": round(time.perf_counter() - t0, 2)}))
     return 0
@@ -385,6 +390,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "truth in exposure.json (pipeline.synth.exposure); 0 = fixed")
     s.add_argument("--white-balance", type=float, default=0.0, metavar="SPREAD",
                    help="and its own white balance: a gain per channel within ±SPREAD")
+    s.add_argument("--fall-off", type=float, default=0.0, metavar="STRENGTH",
+                   help="darken the photos towards one side and the corners as a real camera's vignetting and "
+                        "light do (pipeline.synth.exposure.fall_off_field; 0.3: 1.7x over the frame, as AIMS Erub); "
+                        "0 = none")
     s.set_defaults(func=cmd_synth)
 
     s = sub.add_parser("sfm", help="structure from motion: images -> posed PINHOLE cameras + sparse points")

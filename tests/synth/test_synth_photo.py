@@ -251,3 +251,28 @@ def test_cli_synth_a_survey_at_constant_range(tmp_path, capsys):
     assert main(["synth", "--out", str(tmp_path / "p"), "--altitude", "2,3"]) == 2
     with pytest.raises(SystemExit):
         main(["synth", "--family", "photo", "--out", str(tmp_path / "q"), "--oblique", "1.5"])
+
+
+def test_cli_synth_a_camera_fall_off(tmp_path):
+    """--fall-off: every photo darker towards its top and corners (linear light), recorded in fall_off.json; the
+    field has mean 1 and spans 1.7x at 0.3 (AIMS Erub's survey mean image: 1.6x over its blocks)."""
+    from pipeline.cli import main
+    from pipeline.scene.colour import srgb_to_linear
+    from pipeline.scene.images import read_image
+    from pipeline.synth.exposure import FALL_OFF_FILE, fall_off_field
+
+    field = fall_off_field(320, 240, 0.3)
+    assert field.mean() == pytest.approx(1.0) and field.max() / field.min() == pytest.approx(1.72, abs=0.02)
+    plain, dark = tmp_path / "plain", tmp_path / "dark"
+    for out, extra in ((plain, []), (dark, ["--fall-off", "0.3"])):
+        assert main(["synth", "--family", "photo", "--out", str(out), "--views", "4", "--size", "64x48",
+                     "--preset", "clear", *extra]) == 0
+    assert json.loads((dark / FALL_OFF_FILE).read_text())["strength"] == 0.3 and not (plain / FALL_OFF_FILE).exists()
+    ratio = []
+    for p in sorted((plain / "images").iterdir()):
+        a, b = (srgb_to_linear(read_image(d / "images" / p.name).astype(np.float64)) for d in (plain, dark))
+        ratio.append((b[:12].mean() / a[:12].mean(), b[-12:].mean() / a[-12:].mean()))
+    top, bottom = np.mean(ratio, axis=0)
+    expect = fall_off_field(64, 48, 0.3)
+    assert top == pytest.approx(expect[:12].mean(), rel=0.05) and bottom == pytest.approx(expect[-12:].mean(), rel=0.05)
+    assert bottom > 1.2 * top
