@@ -72,6 +72,17 @@ def water_coefficients(medium: dict | None, metres_per_unit: float | None) -> di
     return out
 
 
+def fall_off_of(train: dict) -> dict[str, Any] | None:
+    """The photos' in-frame fall-off the sparse points' fit measured beside the exposure
+    (:mod:`pipeline.medium.exposure_gains`): its brightest over its darkest value over the frame and its log
+    field's coefficients. None where it was not measured (no medium, or a job from before it was)."""
+    est = (train.get("medium") or {}).get("estimate") or {}
+    if est.get("field_span") is None:
+        return None
+    return {"span": est["field_span"], "log_field": est.get("exposure_field"),
+            "terms": "x, y, x², y², xy over half-widths / half-heights from the frame's centre; grey"}
+
+
 def quality_of(train: dict) -> dict[str, Any] | None:
     """Did the model keep its scene (``pipeline.train.quality``, measured by the train stage), and was it recovered
     from a collapse (``pipeline.train.guard``)? None for jobs trained before the check existed."""
@@ -119,6 +130,7 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "quality": quality_of(train),
         "schedule": train.get("schedule"),  # None for jobs trained before schedules followed the survey
         "exposure": train.get("exposure"),  # each training view's learned gains; None: not learned
+        "fall_off": fall_off_of(train),
         "metrics": ev["metrics"],
         "restoration": restoration,
         "timings": timings,

@@ -92,7 +92,7 @@ def _restored_photos(r: dict, pics: Pictures) -> str:
     if rs.get("not_restored"):
         html += ("<p class=warn>Not restored: " + escape(", ".join(f"{x['name']} ({x['reason']})"
                                                                   for x in rs["not_restored"])) + "</p>")
-    html += _exposure(r.get("exposure"))
+    html += _exposure(r.get("exposure")) + _fall_off(r.get("fall_off"))
     html += _consistency(r.get("consistency"))
     truth = rs.get("truth")
     if truth:
@@ -117,6 +117,15 @@ def _exposure(e: dict | None) -> str:
     return (f"<p><b>Exposure:</b> the photos' exposure and white balance varied by up to "
             f"{fmt(100 * e['max_deviation'], 0)} % from the survey's mean (a gain per channel and photo, learned with "
             f"the model; per photo in the JSON report). The restored photos are at the mean exposure.</p>")
+
+
+def _fall_off(f: dict | None) -> str:
+    """The photos' in-frame fall-off, in one sentence (none below 5 % over the frame)."""
+    if not f or f.get("span") is None or f["span"] < 1.05:
+        return ""
+    return (f"<p><b>Fall-off over the frame:</b> the photos are {fmt(f['span'], 2)}x brighter at the brightest place "
+            f"of the frame than at the darkest (vignetting, the light's cone), whatever they show. It was measured "
+            f"beside the exposure and kept out of the water's measurement; the restored photos keep it.</p>")
 
 
 def _consistency(c: dict | None) -> str:

@@ -41,6 +41,8 @@ class Observations:
     range: np.ndarray  # [M] float
     colour: np.ndarray  # [M, 3] float
     view: np.ndarray | None = None  # [M] int, index into the views gathered (None: not recorded)
+    xy: np.ndarray | None = None  # [M, 2] where in its image: half-widths / half-heights from the centre
+    view_mean: np.ndarray | None = None  # [V, 3] each view's mean colour over its whole image (the images' space)
 
 
 @dataclass
@@ -60,6 +62,10 @@ class MediumEstimate:
     # (pipeline.medium.exposure_fit), else None
     log_gains: list | None = None
     exposure_evidence: float | None = None  # how far those gains stood out of their noise (exposure_fit)
+    # the in-frame fall-off measured beside the gains (pipeline.medium.exposure_gains): its log field's coefficients
+    # [5] (the same in every channel), and its brightest over its darkest value over the frame
+    exposure_field: list | None = None
+    field_span: float | None = None
 
     def effect(self, r: float | None = None) -> float:
         """How much this water changes a surface seen at range ``r`` (default: the sightings' median range): the
@@ -86,10 +92,12 @@ def gather_observations(points: np.ndarray, views: Sequence[View], images: Seque
     comments").
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    idx_all, rng_all, col_all, view_all = [], [], [], []
+    idx_all, rng_all, col_all, view_all, xy_all = [], [], [], [], []
+    means = np.zeros((len(views), 3))
     for k, (v, img) in enumerate(zip(views, images, strict=True)):
         im = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
         H, W = im.shape[:2]
+        means[k] = im.reshape(-1, im.shape[-1])[:, :3].mean(axis=0)
         if sightings is not None and v.name in sightings:
             s = sightings[v.name]
             ids, uv = s.point, s.xy * (W / s.width)
@@ -104,10 +112,12 @@ def gather_observations(points: np.ndarray, views: Sequence[View], images: Seque
         view_all.append(np.full(vis.size, k, np.int64))
         rng_all.append(np.linalg.norm(pts[vis] - v.center, axis=1))
         col_all.append(im[w.astype(np.int64), u.astype(np.int64)].astype(np.float64))
+        xy_all.append(np.stack([2 * u / W - 1, 2 * w / H - 1], 1))
     if not idx_all:
-        return Observations(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64))
+        return Observations(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64),
+                            np.zeros((0, 2)), means)
     return Observations(np.concatenate(idx_all), np.concatenate(rng_all), np.concatenate(col_all),
-                        np.concatenate(view_all))
+                        np.concatenate(view_all), np.concatenate(xy_all), means)
 
 
 def _visible_projections(pts: np.ndarray, v: View, W: int, H: int, cell_px: int, depth_tolerance: float,

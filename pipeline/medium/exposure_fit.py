@@ -3,9 +3,17 @@
 A sighting of point p in view v is ``encode(g_v · L_p,v)`` where L_p,v is what a fixed camera would record through
 the water (:mod:`pipeline.scene.exposure`). Left out, a frame-to-frame exposure change is a colour change the
 water must explain, and on real video it did not (the RUIE fit put B∞ on its bound, :func:`~pipeline.medium.estimate
-.fit_failure`). The fit alternates: the water from the sightings at neutral exposure (:func:`~pipeline.medium
-.estimate.fit_medium`), then each view's gains as the median ratio, in linear light, of its sightings to what the
-water and the points' colours predict, shrunk towards 1 for views with few sightings and made mean-neutral.
+.fit_failure`). The fit alternates: the water from the sightings at neutral exposure and without the survey's
+in-frame fall-off (:func:`~pipeline.medium.estimate.fit_medium`), then each view's gains and the fall-off from the
+ratios, in linear light, of the sightings to what the water and the points' colours predict
+(:func:`~pipeline.medium.exposure_gains.gains_beside_field`), mean-neutral.
+
+The fall-off is taken out of the water's sightings too. Left in, it is a change of brightness with range wherever
+range changes over the frame, and on AIMS Erub (brighter at the bottom of the frame, which is farther) the water
+fit put green's and blue's veil on its bound; taken out, it measured every coefficient but blue's veil. The water
+and the field then trade a little every round (Erub's β_D R 0.52, 0.59, 0.70 per unit after rounds 2, 5 and 12,
+the misfit flat), so the rounds stay at 5; a generated scene with a known fall-off converges in ~15 rounds and is
+within 22 % of its β_D after 5 (the fit before the fall-off: 127 % off).
 
 What separates a gain from the water is range within a view: a gain multiplies every sighting of the view alike,
 the water changes them with range. A view that sits farther away than the others as a whole is partly explained
@@ -21,6 +29,7 @@ from dataclasses import replace
 import numpy as np
 
 from pipeline.medium.estimate import MediumEstimate, Observations, fit_medium
+from pipeline.medium.exposure_gains import FIELD_TERMS, field_span, field_values, gains_beside_field
 from pipeline.scene.colour import srgb_to_linear
 from pipeline.scene.exposure import mean_neutral, neutral
 
@@ -29,10 +38,11 @@ log = logging.getLogger(__name__)
 ROUNDS = 5  # water fits, each followed by the gains' update: on a generated scene with ±30 % gains β_D (G, B)
 #  moved 0.023/0.043 → 0.048/0.074 → 0.060/0.083 → 0.067/0.088 → 0.071/0.091 (without the gains: 0.073/0.102)
 EXPOSURE_EVIDENCE = 25.0  # exposure_evidence above this: the frames' exposure changed; below, the gains are noise and
-#  held at 1. Measured: generated scenes of a fixed camera 5-6 (gains 1-1.8 % std, the water model's misfit between
-#  near and far views), with ±30 % gains 1,750-2,000; real RUIE video 270 (A188) and 450-650 (B571), gains 8-17 % std
+#  held at 1. Measured (with the fall-off): generated scenes of a fixed camera 6-10 (gains 1-2 % std, the water
+#  model's misfit between near and far views), with ±30 % gains 2,900-7,300; real RUIE video 180 (A188) and
+#  410-430 (B571), AIMS Erub 40-60 and Ugar 50 (gains ±4-7 %); a fixed camera with a fall-off of 1.7x 110-120
+#  (gains within 2 %)
 INNER = 10  # gain / point-colour alternations per round
-SHRINK_SIGHTINGS = 1.0  # a view's gain is shrunk by n / (n + this) towards 1 (n: its usable sightings)
 DARK = 0.01  # linear light: sightings darker than this (predicted or seen) carry no exposure information
 
 
@@ -79,33 +89,30 @@ def predicted_colours(obs: Observations, est: MediumEstimate | None) -> np.ndarr
     return out
 
 
-def view_log_gains(seen: np.ndarray, predicted: np.ndarray, view: np.ndarray, n_views: int,
-                   space: str) -> tuple[np.ndarray, np.ndarray]:
-    """Each view's log gains [V, 3], mean-neutral: the median over its sightings of log(seen / predicted) in linear
-    light, shrunk towards 0 by n / (n + ``SHRINK_SIGHTINGS``); and their standard errors [V, 3] (the median's:
-    1.253 x 1.483 MAD / √n). Views without a usable sighting get 0 (and do not enter the mean) and an infinite
-    error."""
+def view_prior(view_mean: np.ndarray | None, n_views: int, space: str) -> np.ndarray:
+    """Each view's log mean brightness (linear light) relative to the survey's, per channel [V, 3]: the prior mean
+    of its log gains (:mod:`pipeline.medium.exposure_gains`); 0 where the views' means were not recorded."""
+    if view_mean is None or len(view_mean) != n_views:
+        return np.zeros((n_views, 3))
+    return mean_neutral(np.log(np.maximum(_linear(np.asarray(view_mean, np.float64), space), 1e-4)))
+
+
+def view_log_gains(seen: np.ndarray, predicted: np.ndarray, view: np.ndarray, n_views: int, space: str,
+                   xy: np.ndarray | None = None, prior: np.ndarray | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each view's log gains [V, 3], mean-neutral, from log(seen / predicted) in linear light over its usable
+    sightings, beside the in-frame fall-off when the sightings' image positions ``xy`` are known
+    (:func:`~pipeline.medium.exposure_gains.gains_beside_field`, ``prior``: [V, 3] the gains' prior means, see
+    :func:`view_prior`); their standard errors [V, 3]; the field's coefficients [5]. Views without a usable
+    sighting get 0 (and do not enter the mean) and an infinite error."""
     s, p = _linear(seen, space), _linear(np.nan_to_num(predicted, nan=-1.0), space)
-    lg = np.zeros((n_views, 3))
-    se = np.full((n_views, 3), np.inf)
-    has = np.zeros(n_views, bool)
-    for c in range(3):
-        ok = _usable(s[:, c], p[:, c])
-        ratio = np.log(s[ok, c] / p[ok, c])
-        v = view[ok]
-        order = np.argsort(v, kind="stable")
-        v, ratio = v[order], ratio[order]
-        bounds = np.searchsorted(v, np.arange(n_views + 1))
-        for k in range(n_views):
-            part = ratio[bounds[k]:bounds[k + 1]]
-            if part.size:
-                med = float(np.median(part))
-                lg[k, c] = med * part.size / (part.size + SHRINK_SIGHTINGS)
-                se[k, c] = 1.2533 * 1.4826 * float(np.median(np.abs(part - med))) / np.sqrt(part.size)
-                has[k] = True
+    ok = [_usable(s[:, c], p[:, c]) for c in range(3)]
+    lg, se, theta = gains_beside_field([np.log(s[o, c] / p[o, c]) for c, o in enumerate(ok)], [view[o] for o in ok],
+                                       None if xy is None else [xy[o] for o in ok], n_views, prior)
+    has = np.isfinite(se).any(axis=1)
     if has.any():
         lg[has] = mean_neutral(lg[has])
-    return lg, se
+    return lg, se, theta
 
 
 def exposure_evidence(lg: np.ndarray, se: np.ndarray) -> float:
@@ -117,20 +124,23 @@ def exposure_evidence(lg: np.ndarray, se: np.ndarray) -> float:
     return float(((lg[ok] / se[ok]) ** 2).sum() / (3 * (ok.sum() - 1)))
 
 
-def _gains_under(obs: Observations, est: MediumEstimate | None, lg: np.ndarray, n_views: int, space: str,
-                 steps: int) -> tuple[np.ndarray, np.ndarray]:
+def _gains_under(obs: Observations, est: MediumEstimate | None, lg: np.ndarray, theta: np.ndarray, n_views: int,
+                 space: str, steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Up to ``steps`` alternations, the water ``est`` held (None: no water), of the points' colours at neutral
-    exposure and the views' gains (:func:`view_log_gains`) from ``lg``; (the gains, their standard errors)."""
+    exposure and the views' gains and the in-frame field (:func:`view_log_gains`) from ``lg`` and ``theta``; (the
+    gains, their standard errors, the field)."""
     se = np.full((n_views, 3), np.inf)
+    prior = view_prior(obs.view_mean, n_views, space)
     for _ in range(steps):
-        pred = predicted_colours(replace(obs, colour=neutral(obs.colour, lg[obs.view], space)), est)
-        # the prediction is at neutral exposure: a view's gains are what take it to the photo
-        new, se = view_log_gains(obs.colour, pred, obs.view, n_views, space)
-        done = float(np.abs(new - lg).max()) < 1e-4
-        lg = new
+        pred = predicted_colours(replace(obs, colour=neutral(obs.colour, lg[obs.view] + _field_at(obs, theta), space)),
+                                 est)
+        # the prediction is at neutral exposure without the field: a view's gains and the field take it to the photo
+        new, se, theta_new = view_log_gains(obs.colour, pred, obs.view, n_views, space, obs.xy, prior)
+        done = max(float(np.abs(new - lg).max()), float(np.abs(theta_new - theta).max())) < 1e-4
+        lg, theta = new, theta_new
         if done:
             break
-    return lg, se
+    return lg, se, theta
 
 
 def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Sequence[float] = (0.8, 0.3, 0.25),
@@ -141,26 +151,52 @@ def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Seque
     if obs.view is None:
         raise ValueError("the sightings must record their views to fit exposure")
     lg = np.zeros((n_views, 3))
+    theta = np.zeros(FIELD_TERMS)
     est: MediumEstimate | None = None
-    first: MediumEstimate | None = None
-    evidence = 0.0
+    evidence, held = 0.0, False
+    judge = 0 if obs.xy is None else 1  # the round whose gains decide whether the frames' exposure changed: with
+    #  the field, the second (the first water fit saw the sightings with the fall-off in them); a fixed camera's
+    #  gains are then held at 1 and the rounds go on for the water and the field
     for k in range(ROUNDS):
-        est = fit_medium(replace(obs, colour=neutral(obs.colour, lg[obs.view], space)), init_optical_depth)
+        est = fit_medium(replace(obs, colour=neutral(obs.colour, lg[obs.view] + _field_at(obs, theta), space)),
+                         init_optical_depth)
         if est is None:
             return None, np.zeros((n_views, 3))
-        first = first or est
-        lg, se = _gains_under(obs, est, lg, n_views, space, INNER)
-        if k == 0:
+        lg, se, theta = _gains_under(obs, est, np.zeros_like(lg) if held else lg, theta, n_views, space, INNER)
+        if k == judge:
             evidence = exposure_evidence(lg, se)
-            if evidence < EXPOSURE_EVIDENCE:  # a fixed camera: the gains are the fit's noise
-                log.info("exposure from the sightings: no change between frames (evidence %.1f < %.0f)", evidence,
-                         EXPOSURE_EVIDENCE)
-                zero = np.zeros((n_views, 3))
-                return replace(first, log_gains=zero.tolist(), exposure_evidence=evidence), zero
+            held = evidence < EXPOSURE_EVIDENCE  # a fixed camera: the gains are the fit's noise
+            if held and obs.xy is None:
+                break
+        if held:
+            lg = np.zeros((n_views, 3))
     assert est is not None
-    log.info("exposure from the sightings (evidence %.0f): gains %.3f-%.3f (R), %.3f-%.3f (G), %.3f-%.3f (B) over "
-             "%d views", evidence, *(float(f(np.exp(lg[:, c]))) for c in range(3) for f in (np.min, np.max)), n_views)
-    return replace(est, log_gains=lg.tolist(), exposure_evidence=evidence), lg
+    if held:
+        log.info("exposure from the sightings: no change between frames (evidence %.1f < %.0f)%s", evidence,
+                 EXPOSURE_EVIDENCE, _field_words(theta, obs))
+    else:
+        log.info("exposure from the sightings (evidence %.0f): gains %.3f-%.3f (R), %.3f-%.3f (G), %.3f-%.3f (B) "
+                 "over %d views%s", evidence, *(float(f(np.exp(lg[:, c]))) for c in range(3) for f in (np.min, np.max)),
+                 n_views, _field_words(theta, obs))
+    return replace(est, log_gains=lg.tolist(), exposure_evidence=evidence, **_field_record(theta, obs)), lg
+
+
+def _field_at(obs: Observations, theta: np.ndarray) -> np.ndarray | float:
+    """The in-frame field's log value at each sighting [M, 1] (0 without the sightings' image positions)."""
+    return field_values(obs.xy, theta) if obs.xy is not None else 0.0
+
+
+def _field_record(theta: np.ndarray, obs: Observations) -> dict:
+    """The estimate's ``exposure_field`` and ``field_span`` (None without the sightings' image positions)."""
+    if obs.xy is None:
+        return {"exposure_field": None, "field_span": None}
+    return {"exposure_field": np.round(theta, 5).tolist(), "field_span": round(field_span(theta), 4)}
+
+
+def _field_words(theta: np.ndarray, obs: Observations) -> str:
+    if obs.xy is None:
+        return ""
+    return f"; the frame's fall-off (brightest / darkest) {field_span(theta):.2f}"
 
 
 def fit_exposure_only(obs: Observations, n_views: int, space: str = "srgb") -> tuple[np.ndarray, float]:
@@ -171,8 +207,8 @@ def fit_exposure_only(obs: Observations, n_views: int, space: str = "srgb") -> t
     if obs.view is None:
         raise ValueError("the sightings must record their views to fit exposure")
     zero = np.zeros((n_views, 3))
-    lg, se = _gains_under(obs, None, zero, n_views, space, INNER)
+    lg, se, theta = _gains_under(obs, None, zero, np.zeros(FIELD_TERMS), n_views, space, INNER)
     evidence = exposure_evidence(lg, se)
     if evidence < EXPOSURE_EVIDENCE:
         return zero, evidence
-    return _gains_under(obs, None, lg, n_views, space, (ROUNDS - 1) * INNER)[0], evidence
+    return _gains_under(obs, None, lg, theta, n_views, space, (ROUNDS - 1) * INNER)[0], evidence
