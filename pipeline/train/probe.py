@@ -45,6 +45,11 @@ from pipeline.train.quality import box_mean
 log = logging.getLogger(__name__)
 
 MODES: tuple[str, ...] = ("3dgs", "homogeneous", "dualphys")  # simplest first
+FALL_OFF_CONFOUNDS = 1.3  # an in-frame fall-off (brightest / darkest) from which the sparse points' water is not a
+#  measurement of how much water there is (measurement_kind). Measured: generated scenes without one 1.00-1.04,
+#  with a 1.72x one 1.67; real sets AIMS Ugar 1.45-1.49, Erub 1.75-1.86, RUIE B571 1.31-1.37, A188 4.35 (lamps: its
+#  photos' mean image falls ~4.8x from left to right), where the water measured beside it fell from 0.21 to 0.13
+UNMEASURED = frozenset({"failed", "confounded"})  # the points' fit said nothing about how much water there is
 ProbeProgress = Callable[[float, str], None]  # (fraction of the probe done, message)
 
 
@@ -141,13 +146,17 @@ def holdout_split(views: Sequence[View], points: np.ndarray, fraction: float) ->
 def measurement_kind(estimate: dict | None) -> str | None:
     """How the sparse points measured the water, from a :class:`MediumEstimate` dict: ``failed`` (a channel's fit
     was not a measurement, the water type's prior stands in: ``pipeline.medium.estimate.fit_failure``),
-    ``measured`` (the data pinned β_D in every channel), ``prior`` (the data could not: too little range spread);
-    None without an estimate."""
+    ``confounded`` (the photos' in-frame fall-off, measured beside the water, spans :data:`FALL_OFF_CONFOUNDS` or
+    more: it shares the water's signal, a grey darkening towards the far side of an oblique frame, so a weak water
+    measured beside it is no evidence of no water), ``measured`` (the data pinned β_D in every channel), ``prior``
+    (the data could not: too little range spread); None without an estimate."""
     if not estimate:
         return None
     unc = estimate.get("uncertainty") or {}
     if any(unc.get("failed") or []):
         return "failed"
+    if (estimate.get("field_span") or 1.0) >= FALL_OFF_CONFOUNDS:
+        return "confounded"
     sources = (unc.get("beta_D") or {}).get("source") or []
     return "measured" if sources and all(x == "measured" for x in sources) else "prior"
 
@@ -232,7 +241,7 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
             return simplest, (f"{where}; the sparse points measured water before training ({measured:.3f} >= "
                               f"{cfg.min_measured_effect:g}): the simplest medium mode. {detail}")
         typed = classified_water(water)
-        if simplest is not None and typed is not None and any(s.measurement == "failed" for s in media.values()):
+        if simplest is not None and typed is not None and any(s.measurement in UNMEASURED for s in media.values()):
             return simplest, (f"{where}; the classifier calls the water {typed} and the sparse points' fit failed: "
                               f"the simplest medium mode. {detail}")
         return "3dgs", (f"{where}, and the sparse points do not measure enough water ({measured:.3f} < "
@@ -249,7 +258,7 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
     if learned < cfg.min_effect:
         kinds = {s.measurement for s in media.values()}
         typed = classified_water(water)
-        if typed is not None and "failed" in kinds:  # the points' fit failed, the images show water
+        if typed is not None and kinds & UNMEASURED:  # the points could not measure it, the images show water
             probs = (water or {}).get("probabilities") or {}
             said = f"the classifier calls the water {typed} (p {probs.get(typed, float('nan')):.2f})"
             if best >= plain - cfg.noise_db:

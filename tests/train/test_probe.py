@@ -144,6 +144,21 @@ def test_a_race_won_on_weakly_measured_water_is_not_water():
     assert mode == "3dgs" and "extra freedom" in reason
     assert decide(scores(0.25), cfg)[0] == "homogeneous"  # real RUIE A188 measures 0.25-0.27
     assert decide(scores(0.123, "failed"), cfg)[0] == "homogeneous"
+    # measured beside a strong in-frame fall-off (RUIE A188's lamps: 4.35x; its points then measured 0.132)
+    assert decide(scores(0.132, "confounded"), cfg)[0] == "homogeneous"
+
+
+def test_water_measured_beside_a_strong_fall_off_is_confounded():
+    """measurement_kind: a fit that held but beside a fall-off of 1.3x or more says nothing of how much water
+    there is; generated scenes without a fall-off measure 1.00-1.04."""
+    from pipeline.train.probe import FALL_OFF_CONFOUNDS, measurement_kind
+
+    held = {"uncertainty": {"failed": [None] * 3, "beta_D": {"source": ["measured"] * 3}}}
+    assert measurement_kind({**held, "field_span": 1.04}) == "measured"
+    assert measurement_kind(held) == "measured"  # estimates from before the fall-off
+    assert measurement_kind({**held, "field_span": FALL_OFF_CONFOUNDS}) == "confounded"
+    failed = {"uncertainty": {"failed": [None, "B∞ on its bound", None], "beta_D": {"source": ["measured"] * 3}}}
+    assert measurement_kind({**failed, "field_span": 4.35}) == "failed"
 
 
 def test_photos_that_do_not_drift_with_range_have_no_water():
