@@ -7,7 +7,7 @@ generated scene per MODEL, ``-`` for none; ``dualphys synth`` with ``--exposure`
 scored against exposure.json and the water against water.json (β in 1/m through the alignment's scale). For
 every scene: the gains' range, their trend along the capture order (the fitted last-over-first ratio, green)
 against the photos' mean brightness's, the fall-off's span over the frame, and the water with each coefficient's
-source. The images are read as a job reads them (at most 400 pixels wide, linear light).
+source. The images are read as a job with the default options reads them (its training size and colour space).
 """
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.job.options import JobOptions
 from pipeline.medium.estimate import gather_observations
 from pipeline.medium.exposure_fit import fit_with_exposure, view_prior
 from pipeline.scene.align import align_to_reference
@@ -27,6 +27,7 @@ from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.synth.exposure import EXPOSURE_FILE
 from pipeline.synth.ground_truth import load_ground_truth
+from pipeline.train.resolve import training_downscale
 from pipeline.train.setup import load_training_images
 from pipeline.water import classify
 from pipeline.water.stage import classify_pick
@@ -42,16 +43,17 @@ def trend(values: np.ndarray) -> float:
 
 def measure(model_root: Path, truth_root: Path | None) -> dict:
     scene = load_scene(model_root)
-    downscale = max(1, math.ceil(scene.views[0].camera.width / 400))
+    opts = JobOptions(source=str(model_root / "images"))  # the images as a job's defaults read them
+    downscale = training_downscale(opts, scene.views[0].camera.width)
     tau = classify([read_image(v.image_path) for v in classify_pick(scene.views)]).settings.init_optical_depth
-    images = load_training_images(scene.views, downscale, "linear")
+    images = load_training_images(scene.views, downscale, opts.colour_space)
     photos = [images[i].numpy() for i in range(len(scene.views))]
     obs = gather_observations(scene.points, scene.views, photos, scene.sightings)
-    est, lg = fit_with_exposure(obs, len(scene.views), tau, "linear")
+    est, lg = fit_with_exposure(obs, len(scene.views), tau, opts.colour_space)
     if est is None:
         return {"model": str(model_root), "fit": None}
     order = np.argsort([v.name for v in scene.views])
-    means = view_prior(obs.view_mean, len(scene.views), "linear")
+    means = view_prior(obs.view_mean, len(scene.views), opts.colour_space)
     out = {"model": str(model_root), "views": len(scene.views), "evidence": round(float(est.exposure_evidence), 1),
            "gains": [round(float(x), 3) for x in (np.exp(lg).min(), np.exp(lg).max())],
            "gain_trend_G": round(trend(lg[order, 1]), 3), "photo_trend_G": round(trend(means[order, 1]), 3),

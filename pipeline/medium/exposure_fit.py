@@ -35,8 +35,7 @@ from pipeline.scene.exposure import mean_neutral, neutral
 
 log = logging.getLogger(__name__)
 
-ROUNDS = 5  # water fits, each followed by the gains' update: on a generated scene with ±30 % gains β_D (G, B)
-#  moved 0.023/0.043 → 0.048/0.074 → 0.060/0.083 → 0.067/0.088 → 0.071/0.091 (without the gains: 0.073/0.102)
+ROUNDS = 5  # water fits, each followed by the gains' and the fall-off's update (why 5: the module docstring)
 EXPOSURE_EVIDENCE = 25.0  # exposure_evidence above this: the frames' exposure changed; below, the gains are noise and
 #  held at 1. Measured (with the fall-off): generated scenes of a fixed camera 6-10 (gains 1-2 % std, the water
 #  model's misfit between near and far views), with ±30 % gains 2,900-7,300; real RUIE video 180 (A188) and
@@ -162,7 +161,7 @@ def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Seque
                          init_optical_depth)
         if est is None:
             return None, np.zeros((n_views, 3))
-        lg, se, theta = _gains_under(obs, est, np.zeros_like(lg) if held else lg, theta, n_views, space, INNER)
+        lg, se, theta = _gains_under(obs, est, lg, theta, n_views, space, INNER)
         if k == judge:
             evidence = exposure_evidence(lg, se)
             held = evidence < EXPOSURE_EVIDENCE  # a fixed camera: the gains are the fit's noise
@@ -171,14 +170,17 @@ def fit_with_exposure(obs: Observations, n_views: int, init_optical_depth: Seque
         if held:
             lg = np.zeros((n_views, 3))
     assert est is not None
+    field = _field_record(theta, obs)
+    span = field["field_span"]
+    words = "" if span is None else f"; the frame's fall-off (brightest / darkest) {span:.2f}"
     if held:
         log.info("exposure from the sightings: no change between frames (evidence %.1f < %.0f)%s", evidence,
-                 EXPOSURE_EVIDENCE, _field_words(theta, obs))
+                 EXPOSURE_EVIDENCE, words)
     else:
         log.info("exposure from the sightings (evidence %.0f): gains %.3f-%.3f (R), %.3f-%.3f (G), %.3f-%.3f (B) "
                  "over %d views%s", evidence, *(float(f(np.exp(lg[:, c]))) for c in range(3) for f in (np.min, np.max)),
-                 n_views, _field_words(theta, obs))
-    return replace(est, log_gains=lg.tolist(), exposure_evidence=evidence, **_field_record(theta, obs)), lg
+                 n_views, words)
+    return replace(est, log_gains=lg.tolist(), exposure_evidence=evidence, **field), lg
 
 
 def _field_at(obs: Observations, theta: np.ndarray) -> np.ndarray | float:
@@ -191,12 +193,6 @@ def _field_record(theta: np.ndarray, obs: Observations) -> dict:
     if obs.xy is None:
         return {"exposure_field": None, "field_span": None}
     return {"exposure_field": np.round(theta, 5).tolist(), "field_span": round(field_span(theta), 4)}
-
-
-def _field_words(theta: np.ndarray, obs: Observations) -> str:
-    if obs.xy is None:
-        return ""
-    return f"; the frame's fall-off (brightest / darkest) {field_span(theta):.2f}"
 
 
 def fit_exposure_only(obs: Observations, n_views: int, space: str = "srgb") -> tuple[np.ndarray, float]:

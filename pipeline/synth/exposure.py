@@ -21,6 +21,14 @@ EXPOSURE_FILE = "exposure.json"
 FALL_OFF_FILE = "fall_off.json"
 
 
+def _rewrite_exposed(path: Path, log_gain) -> None:
+    """Rewrite the 8-bit photo at ``path`` as a camera with gains exp(``log_gain(image)``) on linear light records
+    it (broadcast over [H, W, 3]; the sensor clips at 1)."""
+    img = read_image(path).astype(np.float64)
+    write_image(path, np.clip(np.round(np.clip(exposed(img, log_gain(img), "srgb"), 0, 1) * 255), 0, 255)
+                .astype(np.uint8))
+
+
 def expose_scene(root: str | Path, spread: float, white_balance: float = 0.0, seed: int = 0) -> dict:
     """Apply random per-frame gains to ``root/images`` (module docstring); returns what ``exposure.json`` holds."""
     if not 0 <= spread < 1 or not 0 <= white_balance < 1:
@@ -32,9 +40,7 @@ def expose_scene(root: str | Path, spread: float, white_balance: float = 0.0, se
     w = rng.uniform(1 - white_balance, 1 + white_balance, size=(len(photos), 3))
     gains = np.exp(mean_neutral(np.log(e * w)))  # mean-neutral: clean/ stays the truth of the restored photos
     for p, g in zip(photos, gains, strict=True):
-        img = read_image(p).astype(np.float64)
-        write_image(p, np.clip(np.round(np.clip(exposed(img, np.log(g), "srgb"), 0, 1) * 255), 0, 255)
-                    .astype(np.uint8))
+        _rewrite_exposed(p, lambda img, g=g: np.log(g))
     record = {"spread": spread, "white_balance": white_balance, "space": "linear light",
               "gains": {p.name: [round(float(x), 6) for x in g] for p, g in zip(photos, gains, strict=True)}}
     (root / EXPOSURE_FILE).write_text(json.dumps(record, indent=2))
@@ -60,10 +66,7 @@ def fall_off_scene(root: str | Path, strength: float) -> dict:
     root = Path(root)
     photos = sorted(p for p in (root / "images").iterdir() if p.is_file())
     for p in photos:
-        img = read_image(p).astype(np.float64)
-        field = fall_off_field(img.shape[1], img.shape[0], strength)
-        write_image(p, np.clip(np.round(np.clip(exposed(img, np.log(field)[..., None], "srgb"), 0, 1) * 255),
-                               0, 255).astype(np.uint8))
+        _rewrite_exposed(p, lambda img: np.log(fall_off_field(img.shape[1], img.shape[0], strength))[..., None])
     record = {"strength": strength, "field": "exp(s(0.5y - 0.3x - 0.4(x^2 + y^2))) / mean, linear light"}
     (root / FALL_OFF_FILE).write_text(json.dumps(record, indent=2))
     return record
