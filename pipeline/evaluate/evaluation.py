@@ -38,10 +38,10 @@ from pipeline.evaluate.metrics import (
 )
 from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
 from pipeline.job.layout import JobLayout
-from pipeline.scene.exposure import exposed
 from pipeline.scene.records import View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel
+from pipeline.train.photo_exposure import as_photographed
 from pipeline.train.render import ViewOutputs, displayed, render_outputs
 
 log = logging.getLogger(__name__)
@@ -79,13 +79,16 @@ def image_scores(pairs: list[tuple[np.ndarray, np.ndarray]], lp: LPIPSSetting) -
 
 
 def held_out_metrics(rendered: Sequence[Rendered], photos: Sequence[np.ndarray], lp: LPIPSSetting,
-                     gains: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+                     gains: dict[str, np.ndarray] | None = None, fall_off: np.ndarray | None = None
+                     ) -> dict[str, Any]:
     """Held-out scores of the with-water render against the photos, pooled and per view; a view in ``gains``
     (log gains [3], :func:`pipeline.train.photo_exposure.photo_gains`) is rendered at its photo's exposure (the model is
-    at the survey's mean)."""
+    at the survey's mean), and with the survey's fall-off ``fall_off`` when training divided it out of the photos
+    (:func:`pipeline.train.photo_exposure.as_photographed`)."""
     gains = gains or {}
-    pairs = [(np.clip(exposed(r.out.I, gains[r.view.name], "srgb"), 0, 1).astype(np.float32)
-              if r.view.name in gains else r.out.I, p) for r, p in zip(rendered, photos, strict=True)]
+    pairs = [(np.clip(as_photographed(r.out.I, gains.get(r.view.name), fall_off), 0, 1).astype(np.float32)
+              if r.view.name in gains or fall_off is not None else r.out.I, p)
+             for r, p in zip(rendered, photos, strict=True)]
     per_view = [{"name": r.view.name, "psnr": pooled_psnr([pair]), "ssim": mean_ssim([pair]),
                  "render_ms": r.ms} for r, pair in zip(rendered, pairs, strict=True)]
     return {**image_scores(pairs, lp), "n_views": len(pairs), "views": [r.view.name for r in rendered],
@@ -249,7 +252,7 @@ def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages
     from pipeline.scene.split import split_views
     from pipeline.train.checkpoint import load_checkpoint
     from pipeline.train.model import model_from_state
-    from pipeline.train.photo_exposure import photo_gains
+    from pipeline.train.photo_exposure import photo_fall_off, photo_gains
 
     t0 = time.perf_counter()
     job = Path(job)
@@ -262,7 +265,7 @@ def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages
     lp = lpips_from_env()
     rendered = render_timed(model, test, backend)
     gains = photo_gains(job)  # the held-out photos' exposure, measured against the model after training
-    metrics = held_out_metrics(rendered, [load_view_image(v) for v in test], lp, gains)
+    metrics = held_out_metrics(rendered, [load_view_image(v) for v in test], lp, gains, photo_fall_off(job)[0])
     train = json.loads(layout.train_result.read_text())
     restoration = None
     if ground_truth is not None:

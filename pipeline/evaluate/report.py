@@ -75,12 +75,16 @@ def water_coefficients(medium: dict | None, metres_per_unit: float | None) -> di
 def fall_off_of(train: dict) -> dict[str, Any] | None:
     """The photos' in-frame fall-off the sparse points' fit measured beside the exposure
     (:mod:`pipeline.medium.exposure_gains`): its brightest over its darkest value over the frame and its log
-    field's coefficients. None where it was not measured (no medium, or a job from before it was)."""
+    field's coefficients, and whether training and the restored photos had it divided out
+    (:mod:`pipeline.medium.fall_off`; None: a job from before that was decided). None where it was not measured
+    (no medium, or a job from before it was)."""
     est = (train.get("medium") or {}).get("estimate") or {}
     if est.get("field_span") is None:
         return None
+    decided = (train.get("exposure") or {}).get("fall_off") or {}
     return {"span": est["field_span"], "log_field": est.get("exposure_field"),
-            "terms": "x, y, x², y², xy over half-widths / half-heights from the frame's centre; grey"}
+            "terms": "x, y, x², y², xy over half-widths / half-heights from the frame's centre; grey",
+            "removed": decided.get("removed"), "reason": decided.get("reason")}
 
 
 def quality_of(train: dict) -> dict[str, Any] | None:

@@ -125,7 +125,10 @@ def _fall_off(f: dict | None) -> str:
         return ""
     return (f"<p><b>Fall-off over the frame:</b> the photos are {fmt(f['span'], 2)}x brighter at the brightest place "
             f"of the frame than at the darkest (vignetting, the light's cone), whatever they show. It was measured "
-            f"beside the exposure and kept out of the water's measurement; the restored photos keep it.</p>")
+            f"beside the exposure and kept out of the water's measurement; "
+            + ("it was divided out of the photos for training and of the restored photos: they are as an even light "
+               "would have shown them.</p>" if f.get("removed")
+               else f"the restored photos keep it ({f.get('reason') or 'a job from before it was removed'}).</p>"))
 
 
 def _consistency(c: dict | None) -> str:

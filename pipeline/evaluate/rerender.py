@@ -120,7 +120,7 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
         restore_photo,
     )
     from pipeline.train.model import model_from_state
-    from pipeline.train.photo_exposure import photo_gains, survey_exposure
+    from pipeline.train.photo_exposure import photo_fall_off, photo_gains, survey_exposure
 
     model = model_from_state(state)
     gains = photo_gains(job)  # each photo's exposure, as the restore stage removed it
@@ -130,10 +130,12 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
     lenses = lens_cameras(layout.scene)
     sigma = job_water_sigma(job)
     survey = survey_exposure(gains)
+    fall_off = photo_fall_off(job)[0]  # as the restore stage divided it out
     for v in views:  # out/ gets the job's own folder names for them
         restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
                       lenses[v.name], render_for_photo(model, v, lenses[v.name], sigma,
-                                                       log_gain=gains.get(v.name), survey_log_gain=survey)[0],
+                                                       log_gain=gains.get(v.name), survey_log_gain=survey,
+                                                       fall_off=fall_off)[0],
                       max_gain=max_gain, fmt=fmt, space=model.colour_space)
     return len(views)
 

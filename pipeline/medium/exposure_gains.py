@@ -43,6 +43,16 @@ def field_values(xy: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return (field_basis(xy) @ np.asarray(theta, np.float64))[:, None]
 
 
+def field_map(width: int, height: int, theta: np.ndarray) -> np.ndarray:
+    """The log field [height, width] of coefficients ``theta`` [5] over an image of that size (the training
+    camera's, undistorted), at its pixel centres: column j sits at x = 2(j + ½)/width − 1, as a sighting at COLMAP's
+    pixel coordinate u sits at 2u/width − 1."""
+    x = 2 * (np.arange(width) + 0.5) / width - 1
+    y = 2 * (np.arange(height) + 0.5) / height - 1
+    xy = np.stack(np.meshgrid(x, y), -1).reshape(-1, 2)
+    return field_values(xy, theta).reshape(height, width)
+
+
 def field_span(theta: np.ndarray, grid: int = 21) -> float:
     """How much the field changes over the frame: its brightest over its darkest value."""
     t = np.linspace(-1, 1, grid)
@@ -102,4 +112,4 @@ def gains_beside_field(ratios: list[np.ndarray], views: list[np.ndarray], xys: l
     return lg, se, theta
 
 
-__all__ = ["FIELD_TERMS", "PRIOR_SIGMA", "field_basis", "field_span", "field_values", "gains_beside_field"]
+__all__ = ["FIELD_TERMS", "PRIOR_SIGMA", "field_basis", "field_map", "field_span", "field_values", "gains_beside_field"]

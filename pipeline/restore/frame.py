@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
+from pipeline.medium.fall_off import log_fall_off_at
 from pipeline.restore.dewater import detail_covariance, dewater, local_misfit, noise_and_detail, prior_weights
 from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.guided import (
@@ -169,7 +170,7 @@ class FrameRestorer:
         n_sq, n_lag = 0, 0
         m = self.view.medium
         for e0, y0, y1, e1 in self.calibration_bands():
-            rows = self.neutral(rows_of(e0, e1))
+            rows = self.neutral(rows_of(e0, e1), e0)
             scale, r, surface, k_A, k_B, prior, _ = self._geometry(rows, e0, y0, y1)
             st = -(-r.size // CALIBRATION_PIXELS)  # every st-th row of a large photo's band
             x = rows[y0 - e0:y1 - e0:st].astype(np.float64) * scale
@@ -194,14 +195,28 @@ class FrameRestorer:
         self.detail_cov = detail_covariance(lag, aa)
         return self.lam2
 
-    def neutral(self, rows: np.ndarray) -> np.ndarray:
-        """The photo's rows as stored, or, when the view's exposure is known (``RenderedView.log_gain``), at
-        neutral exposure: float32 sRGB-encoded in [0, 1] (:func:`pipeline.scene.exposure.neutral`)."""
+    def neutral(self, rows: np.ndarray, e0: int) -> np.ndarray:
+        """The photo's rows [e0, e0 + len(rows)) as stored, or, when the view's exposure
+        (``RenderedView.log_gain``) or the survey's fall-off (``RenderedView.fall_off``) is known, with them
+        divided out: float32 sRGB-encoded in [0, 1] (:func:`pipeline.scene.exposure.neutral`)."""
         lg = self.view.log_gain
+        if self.view.fall_off is not None:
+            lg = (0.0 if lg is None else np.asarray(lg, np.float64)) + self.log_fall_off(e0, e0 + rows.shape[0])
         if lg is None:
             return rows
         scale = 1.0 / np.iinfo(rows.dtype).max if np.issubdtype(rows.dtype, np.integer) else 1.0
         return np.clip(neutral(rows.astype(np.float32) * np.float32(scale), lg, "srgb"), 0, 1).astype(np.float32)
+
+    def log_fall_off(self, e0: int, e1: int) -> np.ndarray:
+        """The survey's log fall-off [n, W, 1] at the photo's rows [e0, e1): the field of ``RenderedView.fall_off``
+        (:func:`pipeline.medium.fall_off.log_fall_off_at`, a mean of 1 over the frame) at each pixel's place in
+        the training image (its undistorted ray through the unpadded render camera, in half-widths and
+        half-heights from the centre, as the sparse sightings it was fitted on)."""
+        xn, yn = self.grid.rays(e0, e1)
+        c, pad = self.view.camera, self.view.pad
+        w0, h0 = c.width - 2 * pad, c.height - 2 * pad
+        xy = np.stack([2 * (c.fx * xn + c.cx - pad) / w0 - 1, 2 * (c.fy * yn + c.cy - pad) / h0 - 1], -1)
+        return log_fall_off_at(xy.reshape(-1, 2), self.view.fall_off).reshape(*xn.shape, 1)
 
     def _geometry(self, rows: np.ndarray, e0: int, y0: int, y1: int) -> tuple:
         """What the physics needs of rows [y0, y1) besides the photo (``rows``: its rows [e0, e0 + len(rows))):
@@ -235,7 +250,7 @@ class FrameRestorer:
         """Restore rows [y0, y1) given the photo's rows [e0, e0 + len(rows)) (uint8/uint16/float [m, W, 3]).
         Returns (J [n, W, 3] uint8/uint16, confidence [n, W] float32, surface [n, W] bool, extension weight
         [n, W] float32, clipped count)."""
-        rows = self.neutral(rows)
+        rows = self.neutral(rows, e0)
         m = self.view.medium
         M = self.misfit_margin
         k0, k1 = max(e0, y0 - M), min(e0 + rows.shape[0], y1 + M)  # the rows the misfit's window reaches

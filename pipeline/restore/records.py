@@ -61,6 +61,10 @@ class RenderedView:
     # log gains [3] on linear light that take the de-watered photo from the model's exposure to the survey's mean
     # (pipeline.train.photo_exposure.survey_exposure); None: left at the model's
     output_log_gain: np.ndarray | None = None
+    # the survey's in-frame fall-off (vignetting, a lamp's cone) as the coefficients [5] of its grey log field over
+    # the training image's coordinates (pipeline.medium.exposure_gains), divided out of the photo with its
+    # exposure; None: left in
+    fall_off: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = (self.camera.height, self.camera.width)

@@ -110,16 +110,19 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: V
 
 def render_for_photo(model: TrainedModel, view: View, lens: LensCamera, sigma: np.ndarray | None = None,
                      backend: str = "auto", log_gain: np.ndarray | None = None,
-                     survey_log_gain: np.ndarray | None = None) -> tuple[RenderedView, ViewOutputs, int]:
+                     survey_log_gain: np.ndarray | None = None, fall_off: np.ndarray | None = None
+                     ) -> tuple[RenderedView, ViewOutputs, int]:
     """The model rendered for restoring ``view``'s photo (``lens``), in :func:`photo_view`'s padded camera: (what
     the restorer reads, the render's outputs, the pad in render pixels on each side). ``log_gain``: the photo's
     exposure (:func:`pipeline.train.photo_exposure.photo_gains`), removed before it is de-watered;
     ``survey_log_gain``: the survey's mean exposure on the model's (:func:`~pipeline.train.photo_exposure
-    .survey_exposure`), given to the restored photo."""
+    .survey_exposure`), given to the restored photo; ``fall_off``: the survey's in-frame fall-off
+    (:func:`pipeline.train.photo_exposure.photo_fall_off`), divided out with the exposure."""
     padded, pad = photo_view(view, lens)
     out = render_outputs(model.gaussians, padded, model.medium, model.sh_degree, backend, model.background)
     rendered = rendered_view(model, padded, backend, out=out, sigma=sigma, pad=pad)
-    return dataclasses.replace(rendered, log_gain=log_gain, output_log_gain=survey_log_gain), out, pad
+    return (dataclasses.replace(rendered, log_gain=log_gain, output_log_gain=survey_log_gain, fall_off=fall_off),
+            out, pad)
 
 
 def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: LensCamera, view: RenderedView, *,

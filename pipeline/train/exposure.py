@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 from pipeline.medium.estimate import gather_observations
 from pipeline.medium.exposure_fit import fit_exposure_only
+from pipeline.medium.fall_off import FallOff, log_fall_off_map
 from pipeline.scene.exposure import neutral
 from pipeline.scene.records import Scene, View
 
@@ -37,9 +38,12 @@ class ViewExposure:
 
     def __init__(self, n_views: int, space: str, lr: float, weight: float, iterations: int,
                  init: Sequence[Sequence[float]] | None = None, device: torch.device | str = "cpu", *,
-                 source: str = "learned in training", evidence: float | None = None):
+                 source: str = "learned in training", evidence: float | None = None,
+                 fall_off: FallOff | None = None):
         self.space, self.lr, self.weight, self.iterations = space, lr, weight, max(1, iterations)
         self.source, self.evidence = source, evidence
+        self.fall_off = fall_off  # the survey's in-frame fall-off, divided out of every photo with its gains
+        self._field: dict[tuple[int, int], Tensor] = {}  # its log field [H, W, 1] per image size
         start = np.zeros((n_views, 3)) if init is None else np.asarray(init, dtype=np.float64).reshape(n_views, 3)
         self.log_gain = nn.ParameterList(
             [nn.Parameter(torch.tensor(row, dtype=torch.float32, device=device)) for row in start])
@@ -49,8 +53,19 @@ class ViewExposure:
         self.optimizer = torch.optim.Adam(list(self.log_gain), lr=lr, eps=1e-15)
 
     def correct(self, i: int, target: Tensor) -> Tensor:
-        """View ``i``'s photo [H, W, 3] (physics space) at neutral exposure, differentiable in its gains."""
-        return neutral(target, self.log_gain[i], self.space)
+        """View ``i``'s photo [H, W, 3] (physics space) at neutral exposure and even light (the survey's
+        fall-off divided out when it is measured), differentiable in its gains."""
+        return neutral(target, self.log_gain[i] + self.log_field(*target.shape[:2], target.device), self.space)
+
+    def log_field(self, height: int, width: int, device: torch.device | str = "cpu") -> Tensor:
+        """The survey's log fall-off [H, W, 1] over an image of that size (a zero scalar when none is removed)."""
+        if self.fall_off is None or self.fall_off.log_field is None:
+            return torch.zeros((), device=device)
+        key = (height, width)
+        if key not in self._field:
+            self._field[key] = torch.as_tensor(log_fall_off_map(width, height, self.fall_off.log_field)[..., None],
+                                               dtype=torch.float32, device=device)
+        return self._field[key]
 
     def penalty(self, i: int) -> Tensor:
         """The weighted penalty on view ``i``'s log gains (the step's loss term "exposure"; 0 when held)."""
@@ -77,7 +92,8 @@ class ViewExposure:
     def record(self, names: Sequence[str]) -> dict[str, Any]:
         """:func:`exposure_record` of these views' gains, with where they came from."""
         return {**exposure_record(names, self.gains()), "source": self.source,
-                "evidence": None if self.evidence is None else round(float(self.evidence), 2)}
+                "evidence": None if self.evidence is None else round(float(self.evidence), 2),
+                "fall_off": None if self.fall_off is None else self.fall_off.record}
 
     def state_dict(self) -> dict[str, Any]:
         return {"log_gain": torch.stack([p.detach().clone() for p in self.log_gain]),

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.job.layout import JobLayout
+from pipeline.medium.fall_off import log_fall_off_map
 from pipeline.scene.colour import srgb_to_linear
 from pipeline.scene.exposure import exposed
 from pipeline.scene.loader import load_view_image
@@ -45,20 +46,31 @@ MIN_PIXELS = 500  # a photo's gains are measured from at least this many usable 
 
 
 def render_log_ratio(model: TrainedModel, view: View, photo: np.ndarray, log_gain: np.ndarray | None,
-                     backend: str = "auto") -> np.ndarray | None:
+                     backend: str = "auto", fall_off: np.ndarray | None = None) -> np.ndarray | None:
     """:func:`log_ratio` of ``photo`` [H, W, 3] (sRGB in [0, 1], at the view's size) to the model rendered for
     ``view`` with its water."""
     out = displayed(render_outputs(model.gaussians, view, model.medium, model.sh_degree, backend, model.background),
                     model.colour_space)
-    return log_ratio(out.I, out.alpha, photo, log_gain)
+    return log_ratio(out.I, out.alpha, photo, log_gain, fall_off)
 
 
-def log_ratio(render: np.ndarray, alpha: np.ndarray, photo: np.ndarray, log_gain: np.ndarray | None
-              ) -> np.ndarray | None:
+def as_photographed(render: np.ndarray, log_gain: np.ndarray | None, fall_off: np.ndarray | None) -> np.ndarray:
+    """A render (sRGB [H, W, 3], neutral exposure, even light) as the camera recorded it: at exposure ``log_gain``
+    [3] and with the survey's fall-off ``fall_off`` (the field's coefficients [5],
+    :func:`pipeline.medium.fall_off.log_fall_off_map`) that training divided out of the photos; unclipped."""
+    lg = None if log_gain is None else np.asarray(log_gain, np.float64)
+    if fall_off is not None:
+        H, W = render.shape[:2]
+        lg = (0.0 if lg is None else lg) + log_fall_off_map(W, H, fall_off)[..., None]
+    return render if lg is None else exposed(render, lg, "srgb")
+
+
+def log_ratio(render: np.ndarray, alpha: np.ndarray, photo: np.ndarray, log_gain: np.ndarray | None,
+              fall_off: np.ndarray | None = None) -> np.ndarray | None:
     """Per channel, the median over the covered, usable pixels of log(photo / render) in linear light, with the
-    render (sRGB [H, W, 3], at neutral exposure) taken to exposure ``log_gain`` [3] (None: neutral); None where
-    too few pixels are usable."""
-    render = render if log_gain is None else exposed(render, log_gain, "srgb")
+    render (sRGB [H, W, 3], at neutral exposure) taken to exposure ``log_gain`` [3] (None: neutral) and the
+    survey's fall-off (:func:`as_photographed`); None where too few pixels are usable."""
+    render = as_photographed(render, log_gain, fall_off)
     seen = srgb_to_linear(np.clip(np.asarray(photo, np.float64), 0, 1))
     pred = srgb_to_linear(np.clip(np.asarray(render, np.float64), 0, 1))
     covered = np.asarray(alpha) >= COVERED
@@ -72,15 +84,15 @@ def log_ratio(render: np.ndarray, alpha: np.ndarray, photo: np.ndarray, log_gain
 
 
 def measure_photo_exposure(model: TrainedModel, views: Sequence[View], photos: Iterable[np.ndarray],
-                           trained: dict[str, np.ndarray], backend: str = "auto"
+                           trained: dict[str, np.ndarray], backend: str = "auto", fall_off: np.ndarray | None = None
                            ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Every view's log gains [3] (linear light, on the model's exposure) measured against the model (module
     docstring): ``trained`` maps the training views' names to the log gains training used; the other ``views``
-    are held out. Returns (name → log gains, what was measured: the corrections' size and the views kept as they
-    were)."""
+    are held out; ``fall_off``: the survey's fall-off training divided out (:func:`as_photographed`). Returns
+    (name → log gains, what was measured: the corrections' size and the views kept as they were)."""
     corr: dict[str, np.ndarray] = {}
     for v, photo in zip(views, photos, strict=True):
-        r = render_log_ratio(model, v, photo, trained.get(v.name), backend)
+        r = render_log_ratio(model, v, photo, trained.get(v.name), backend, fall_off)
         if r is not None:
             corr[v.name] = r
     known = [corr[n] for n in trained if n in corr]
@@ -118,7 +130,8 @@ def job_photo_exposure(job: Path, views: Sequence[View], record: dict[str, Any],
                 "measured": {"method": "none: the sparse points showed no change between frames"}}
     model = model_from_state(load_checkpoint(JobLayout(job).checkpoint))
     trained = {n: np.log(np.asarray(g, dtype=np.float64)) for n, g in record["views"].items()}
-    gains, info = measure_photo_exposure(model, views, (load_view_image(v) for v in views), trained, backend)
+    gains, info = measure_photo_exposure(model, views, (load_view_image(v) for v in views), trained, backend,
+                                         removed_fall_off(record))
     return {**record, "photos": {n: [round(float(x), 4) for x in np.exp(g)] for n, g in gains.items()},
             "measured": info}
 
@@ -136,6 +149,23 @@ def photo_gains(job: Path) -> dict[str, np.ndarray]:
     return gains if any(np.any(g) for g in gains.values()) else {}
 
 
+def removed_fall_off(record: dict[str, Any] | None) -> np.ndarray | None:
+    """The survey's in-frame fall-off that training divided out of the photos, from train_result.json's
+    ``exposure`` block (``record``; :func:`pipeline.medium.fall_off.fall_off_to_remove`): the log field's
+    coefficients [5], or None when none was (the model then holds the photos' light as it was)."""
+    fall = (record or {}).get("fall_off") or {}
+    return np.asarray(fall["log_field"], np.float64) if fall.get("removed") else None
+
+
+def photo_fall_off(job: Path) -> tuple[np.ndarray | None, dict[str, Any] | None]:
+    """:func:`removed_fall_off` of a job's train_result.json, with the decision's record (None: not decided)."""
+    layout = JobLayout(job)
+    if not layout.train_result.exists():
+        return None, None
+    record = json.loads(layout.train_result.read_text()).get("exposure") or {}
+    return removed_fall_off(record), record.get("fall_off")
+
+
 def survey_exposure(gains: dict[str, np.ndarray]) -> np.ndarray | None:
     """The survey's mean exposure, log gains [3] on the model's (which is the training views' mean): the mean over
     every photo of :func:`photo_gains`. The restored photos are given it, so they sit at the mean of all the photos,
@@ -143,5 +173,5 @@ def survey_exposure(gains: dict[str, np.ndarray]) -> np.ndarray | None:
     return np.mean(list(gains.values()), axis=0) if gains else None
 
 
-__all__ = ["job_photo_exposure", "log_ratio", "measure_photo_exposure", "photo_gains", "render_log_ratio",
-           "survey_exposure"]
+__all__ = ["as_photographed", "job_photo_exposure", "log_ratio", "measure_photo_exposure", "photo_fall_off",
+           "photo_gains", "removed_fall_off", "render_log_ratio", "survey_exposure"]

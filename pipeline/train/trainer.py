@@ -27,6 +27,7 @@ from torch import Tensor, nn
 
 from pipeline.config import TrainConfig, from_dict, to_dict
 from pipeline.job.layout import CHECKPOINT_NAME
+from pipeline.medium.fall_off import fall_off_to_remove
 from pipeline.medium.term import MediumTerm
 from pipeline.profiling import section
 from pipeline.scene.records import Scene, View, scaled_view
@@ -145,7 +146,8 @@ class Trainer:
                       else "none: the sparse points showed no change between frames")
             self.exposure = ViewExposure(len(self.views), cfg.colour_space, cfg.exposure_lr if learn else 0.0,
                                          cfg.exposure_weight, cfg.iterations, init, self.device, source=source,
-                                         evidence=evidence)
+                                         evidence=evidence,
+                                         fall_off=fall_off_to_remove(est) if self.medium is not None else None)
         self.cameras = [view_tensors(v, self.device) for v in self.views]  # (viewmat [4,4], K [3,3])
         # The coarse start (TrainConfig.coarse_fraction): iterations 1..coarse_until render the views shrunk
         # coarse_downscale times against the targets area-averaged to that size, with the eager losses (a

@@ -8,6 +8,7 @@ import pytest
 
 from pipeline.restore.frame import FrameRestorer, RestoreOptions, restore_array, restore_file
 from pipeline.restore.synthetic import SynthFrame
+from pipeline.scene.records import Camera
 
 
 def _psnr(a, b, m):
@@ -156,3 +157,35 @@ def test_a_photos_exposure_is_removed_and_the_survey_mean_given(frame):
     out = restore_array(photo, fr.lens, dataclasses.replace(rv, log_gain=lg, output_log_gain=survey))
     assert _psnr(out.J / 255, np.clip(exposed(J, survey, "srgb"), 0, 1), m) > 40
     assert _psnr(out.J / 255, J, m) < 35  # not the neutral one
+
+
+def test_the_surveys_fall_off_is_divided_out_with_the_exposure(frame):
+    """A photo darkened towards its edges by the survey's fall-off (a grey log field over the training image's
+    coordinates, as the sparse points' fit measures it, at a mean of 1 over the frame) restores as the even-lit
+    photo does when the field is given (``fall_off``), and not without it. The field is placed through the lens:
+    a pixel's undistorted ray in the training camera, here x = 2·f·xn / w, y = 2·f·yn / h (pad 0, centred
+    principal point); a padded render camera places it at the same pixels."""
+    from pipeline.medium.fall_off import log_fall_off_at
+    from pipeline.restore.lens import exact_rays
+    from pipeline.scene.exposure import exposed
+
+    fr, I, J, surf, rv = frame
+    cam = rv.camera
+    theta = np.array([0.1, -0.15, -0.35, -0.25, 0.05])  # spans ~2x over the frame
+    xn, yn = exact_rays(fr.lens, 0, fr.height)
+    xy = np.stack([2 * cam.fx * xn / cam.width, 2 * cam.fy * yn / cam.height], -1)
+    lf = log_fall_off_at(xy.reshape(-1, 2), theta).reshape(*xn.shape, 1)
+    lg = np.log([1.2, 0.9, 1.1])
+    photo = (np.clip(exposed(I, lg + lf, "srgb"), 0, 1) * 255 + 0.5).astype(np.uint8)
+    res = restore_array(photo, fr.lens, dataclasses.replace(rv, log_gain=lg, fall_off=theta))
+    left = restore_array(photo, fr.lens, dataclasses.replace(rv, log_gain=lg))
+    m = res.surface & surf
+    got, was = _psnr(res.J / 255, J, m), _psnr(left.J / 255, J, m)
+    assert got > 40 and was < got - 10, (got, was)  # measured 43.8 and 25.1 dB
+    p = 3
+    padded = Camera(cam.width + 2 * p, cam.height + 2 * p, cam.fx, cam.fy, cam.cx + p, cam.cy + p)
+    pv = dataclasses.replace(rv, camera=padded, pad=p, depth=np.pad(rv.depth, p), alpha=np.pad(rv.alpha, p),
+                             fall_off=theta)
+    a = FrameRestorer(fr.lens, dataclasses.replace(rv, fall_off=theta)).log_fall_off(0, fr.height)
+    b = FrameRestorer(fr.lens, pv).log_fall_off(0, fr.height)
+    assert np.abs(a - lf).max() < 1e-3 and np.abs(b - lf).max() < 1e-3

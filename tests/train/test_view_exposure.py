@@ -42,3 +42,25 @@ def test_gains_fitted_to_photos_of_one_scene():
     np.testing.assert_allclose(np.log(ex.gains()), true, atol=0.01)
     rec = exposure_record(["a", "b"], ex.gains())
     assert set(rec["views"]) == {"a", "b"} and abs(rec["max_deviation"] - 0.3) < 0.02
+
+
+def test_the_surveys_fall_off_is_divided_out_of_the_photo_and_put_back_on_the_render():
+    """Training compares the model with the photo at even light (the fall-off divided out with the gains); what
+    compares the model with a photo later puts it back (``as_photographed``): the round trip is the photo."""
+    from pipeline.medium.fall_off import fall_off_to_remove, log_fall_off_map
+    from pipeline.train.photo_exposure import as_photographed, removed_fall_off
+
+    theta = np.array([0.1, -0.2, -0.3, -0.2, 0.05])
+    fall = fall_off_to_remove({"exposure_field": theta.tolist(), "field_span": 2.0})
+    even = np.random.default_rng(0).uniform(0.1, 0.6, (12, 16, 3))
+    lg = np.log([[1.1, 1.0, 0.9], [1 / 1.1, 1.0, 1 / 0.9]])
+    photo = exposed(even, lg[1] + log_fall_off_map(16, 12, theta)[..., None], "srgb")
+    assert np.abs(photo - even).max() > 0.1  # the corners are much darker
+    ex = ViewExposure(2, "srgb", lr=0.0, weight=0.0, iterations=10, init=lg, fall_off=fall)
+    got = ex.correct(1, torch.from_numpy(photo).float()).numpy()
+    np.testing.assert_allclose(got, even, atol=1e-5)
+    record = ex.record(["a", "b"])
+    assert record["fall_off"]["removed"]
+    np.testing.assert_allclose(as_photographed(even, lg[1], removed_fall_off(record)), photo, atol=1e-6)
+    plain = ViewExposure(2, "srgb", lr=0.0, weight=0.0, iterations=10, init=lg)  # no fall-off measured: left in
+    assert plain.record(["a", "b"])["fall_off"] is None and removed_fall_off(plain.record(["a", "b"])) is None
