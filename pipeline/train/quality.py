@@ -11,6 +11,10 @@ with a good PSNR while it has lost the seabed. These measurements tell that apar
   it (a plain 3DGS model of a generated scene without water: 45-50 % in every view).
 - ``uncovered_content``: share of the uncovered pixels whose photo is not dark: a view with next to nothing covered
   where its photo shows something has lost its scene (:func:`lost_view`).
+- ``uncovered_missed``: share of the uncovered pixels whose photo shows something that the prediction does not
+  reproduce. In plain splatting it is what tells a lost view: a dark scene is drawn faint over the black background
+  and still renders its photo (AIMS Erub in ``3dgs``: alpha 0.25 on average, under 5 % of most views' pixels at
+  0.5, renders at 37-40 dB), while a lost model renders the background.
 - ``water_share``: mean over pixels of the light the water alone adds, α·B + (1 − α)·B∞, over the predicted
   light I; 1 means the view is all veil.
 - ``uncovered_detail``: share of a view's pixels that are uncovered although the photo shows structure there
@@ -38,6 +42,7 @@ COLLAPSE_VIEW_SHARE = 0.5  # more lost training views than this share: the scene
 COLLAPSE_UNCOVERED_DETAIL = 0.5  # a medium view with this share of its pixels uncovered where the photo shows detail
 #                                  is lost (the steep oblique views of photo medium water, far half as veil: ~0.4)
 DARK_PHOTO = 0.05  # a photo pixel whose brightest channel is under this shows nothing (a black frame, a shadow)
+MISSED = 0.5  # a pixel's prediction misses its photo when they differ by this share of the photo's brightest channel
 COLLAPSE_BUDGET_SHARE = 0.02  # fewer Gaussians than this share of the budget: the model collapsed
 WARN_POINT_COVERAGE = 0.9  # below this a medium view's sparse points are reported as partly uncovered (a warning)
 WARN_POINT_DEPTH = 0.5  # fewer of a view's points rendered at their distance than this: a warning (see below)
@@ -62,6 +67,7 @@ class ViewQuality:
     #                                 (95th percentile): surface drawn far behind where points are too sparse to say
     uncovered_detail: float | None = None  # share of pixels uncovered where the photo has detail the model lacks
     uncovered_content: float | None = None  # share of the uncovered pixels where the photo is not dark (DARK_PHOTO)
+    uncovered_missed: float | None = None  # ... and the prediction misses it (MISSED); None without a prediction
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
@@ -138,10 +144,15 @@ def view_quality(name: str, alpha: np.ndarray, points_xy: np.ndarray, water: np.
     if water is not None and predicted is not None:
         share = float((water.sum(-1) / np.maximum(predicted.sum(-1), 1e-4)).clip(0, 1).mean())
     ud = uncovered_detail(photo, predicted, covered) if photo is not None and predicted is not None else None
-    uc = None
+    uc = um = None
     if photo is not None and not covered.all():
-        uc = float((np.asarray(photo).max(-1)[~covered] >= DARK_PHOTO).mean())
-    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)), pd, fs, ud, uc)
+        bright = np.asarray(photo, np.float64).max(-1)
+        shown = bright[~covered] >= DARK_PHOTO
+        uc = float(shown.mean())
+        if predicted is not None:
+            miss = np.abs(np.asarray(photo, np.float64) - predicted).max(-1)[~covered] > MISSED * bright[~covered]
+            um = float((shown & miss).mean())
+    return ViewQuality(name, float(covered.mean()), pc, share, int(len(points_xy)), pd, fs, ud, uc, um)
 
 
 def _flagged(views: Sequence[ViewQuality], field: str, limit: float, below: bool
@@ -154,9 +165,13 @@ def _flagged(views: Sequence[ViewQuality], field: str, limit: float, below: bool
 
 def lost_view(q: ViewQuality, medium: bool = True) -> bool:
     """A view whose scene is gone: next to nothing covered (under ``COLLAPSE_COVERAGE`` of its pixels) although
-    its photo shows something there (``uncovered_content``; unknown counts as shown); or, with a medium, the veil
-    owning at least ``COLLAPSE_UNCOVERED_DETAIL`` of its pixels where the photo shows detail."""
-    empty = q.coverage < COLLAPSE_COVERAGE and (q.uncovered_content is None or q.uncovered_content >= 0.5)
+    its photo shows something there (``uncovered_content``; unknown counts as shown) — in plain splatting,
+    something the prediction misses (``uncovered_missed``, where measured): a faint model that renders its photo
+    holds its scene; or, with a medium, the veil owning at least ``COLLAPSE_UNCOVERED_DETAIL`` of its pixels where
+    the photo shows detail. (A medium model left transparent shows the veil, which a turbid photo resembles: there
+    uncovered content counts as lost.)"""
+    content = q.uncovered_content if medium or q.uncovered_missed is None else q.uncovered_missed
+    empty = q.coverage < COLLAPSE_COVERAGE and (content is None or content >= 0.5)
     eaten = medium and q.uncovered_detail is not None and q.uncovered_detail >= COLLAPSE_UNCOVERED_DETAIL
     return empty or eaten
 
@@ -186,6 +201,12 @@ def collapse_warnings(views: Sequence[ViewQuality], n_gaussians: int, budget: in
         collapsed = True
         warnings.append(f"only {n_gaussians} Gaussians, {100 * n_gaussians / budget:.1f}% of the budget {budget}")
     if not medium:
+        faint = [q for q in views if q.coverage < COLLAPSE_COVERAGE and q not in lost]
+        if faint:
+            warnings.append(f"{len(faint)} of {len(views)} training views are drawn faint (under "
+                            f"{100 * COLLAPSE_COVERAGE:g}% of their pixels at alpha {COVER_ALPHA}) and still render "
+                            f"their photos ({_names(faint)}): a dark scene over the black background; its depth "
+                            f"maps are less certain than an opaque model's")
         return collapsed, warnings
     thin, worst = _flagged(views, "point_coverage", WARN_POINT_COVERAGE, below=True)
     if worst:

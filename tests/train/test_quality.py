@@ -161,3 +161,21 @@ def test_a_veil_drawn_over_most_of_the_detail_is_a_lost_view_with_a_medium():
     assert lost_view(q, medium=True) and not lost_view(q, medium=False)
     collapsed, warnings = collapse_warnings([q, q], 5000, 10_000)
     assert collapsed and "2 of 2 training views lost their scene" in warnings[0]
+
+
+def test_a_faint_plain_model_that_renders_its_photos_is_not_lost():
+    """AIMS Erub in 3dgs: a dark reef drawn faint over the black background (alpha ~0.25, under 5 % of the pixels
+    at 0.5 in 15 of 22 views) renders its photos at 37-40 dB; the job failed as "collapsed". In plain splatting a
+    view is lost only where the prediction misses what the photo shows; a model gone transparent renders the black
+    background and still is. With a medium the rule is unchanged (a transparent medium model shows the veil)."""
+    photo = np.full((8, 8, 3), 0.12)
+    photo[::2] = 0.2  # texture
+    faint = np.full((8, 8), 0.25)
+    healthy = view_quality("f", faint, np.zeros((0, 2)), predicted=photo * 0.98, photo=photo)
+    gone = view_quality("g", np.zeros((8, 8)), np.zeros((0, 2)), predicted=np.zeros((8, 8, 3)), photo=photo)
+    assert healthy.uncovered_content == 1.0 and healthy.uncovered_missed == 0.0 and gone.uncovered_missed == 1.0
+    assert not lost_view(healthy, medium=False) and lost_view(gone, medium=False)
+    collapsed, warnings = collapse_warnings([healthy] * 3, 50_000, 100_000, medium=False)
+    assert not collapsed and len(warnings) == 1 and "drawn faint" in warnings[0]
+    assert collapse_warnings([gone] * 3, 50_000, 100_000, medium=False)[0]
+    assert lost_view(healthy, medium=True) and collapse_warnings([healthy] * 3, 50_000, 100_000)[0]
