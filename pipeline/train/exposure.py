@@ -25,7 +25,7 @@ from torch import Tensor, nn
 from pipeline.medium.estimate import gather_observations
 from pipeline.medium.exposure_fit import fit_exposure_only
 from pipeline.medium.fall_off import FallOff, log_fall_off_map
-from pipeline.scene.exposure import neutral
+from pipeline.scene.exposure import exposed, neutral
 from pipeline.scene.records import Scene, View
 
 log = logging.getLogger(__name__)
@@ -66,6 +66,15 @@ class ViewExposure:
             self._field[key] = torch.as_tensor(log_fall_off_map(width, height, self.fall_off.log_field)[..., None],
                                                dtype=torch.float32, device=device)
         return self._field[key]
+
+    def photographed(self, x: np.ndarray) -> np.ndarray:
+        """A prediction [H, W, 3] (physics space, even light) as the camera recorded it: the survey's fall-off
+        put back where training divided it out (:func:`pipeline.medium.fall_off.log_fall_off_map`), unclipped;
+        ``x`` itself when none was."""
+        if self.fall_off is None or self.fall_off.log_field is None:
+            return x
+        H, W = x.shape[:2]
+        return exposed(x, log_fall_off_map(W, H, self.fall_off.log_field)[..., None], self.space)
 
     def penalty(self, i: int) -> Tensor:
         """The weighted penalty on view ``i``'s log gains (the step's loss term "exposure"; 0 when held)."""

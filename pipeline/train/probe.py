@@ -322,12 +322,15 @@ def surface_colour(out) -> np.ndarray:
     return np.clip((out.J * out.A + a * out.B) / a, 0.0, 1.0)
 
 
-def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndarray], window: int = 1
-           ) -> dict[str, float]:
+def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndarray], window: int = 1,
+           photographed: Callable[[np.ndarray], np.ndarray] | None = None) -> dict[str, float]:
     """PSNR with water of the predicted surface colour (:func:`surface_colour`) over the masked pixels of all
     held-back views (pooled) and, for a medium, its mean attenuation 1 − A and backscatter B there. With
     ``window`` > 1 the PSNR compares local means over
-    ``window`` x ``window`` squares, on pixels whose whole square is masked (``ProbeConfig.window``)."""
+    ``window`` x ``window`` squares, on pixels whose whole square is masked (``ProbeConfig.window``).
+    ``photographed``: the prediction as the camera recorded it (the survey's fall-off put back where the mode's
+    training divided it out, :meth:`pipeline.train.exposure.ViewExposure.photographed`), so every mode is scored
+    against the photos as they are."""
     from pipeline.evaluate.metrics import pooled_psnr
 
     att, bs = [], []
@@ -336,7 +339,8 @@ def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndar
             att.append(1.0 - out.A[m])
             bs.append(out.B[m])
     covered = sum(int(m.sum()) for m in masks)  # no pixel every mode covered: all modes tie at +inf
-    pairs = [(surface_colour(out), t) for out, t in zip(outputs, targets, strict=True)]
+    as_taken = photographed or (lambda x: x)
+    pairs = [(np.clip(as_taken(surface_colour(out)), 0.0, 1.0), t) for out, t in zip(outputs, targets, strict=True)]
     scored = list(masks)
     if window > 1:
         local = [(box_mean(a, window), box_mean(b, window)) for a, b in pairs]
@@ -400,7 +404,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
     _steps(warm, cfg.warmup, should_cancel)
     warm_state = warm.state_dict()
     warm_s = time.perf_counter() - t0
-    outputs, seconds, coefficients, measured, kinds = {}, {}, {}, {}, {}
+    outputs, seconds, coefficients, measured, kinds, photographed = {}, {}, {}, {}, {}, {}
     for k, mode in enumerate(modes):
         report((cfg.warmup + k * cfg.iterations) / total_steps, f"probe: {mode}")
         t0 = time.perf_counter()
@@ -411,6 +415,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
         tr.load_state_dict(state)
         _steps(tr, cfg.iterations, should_cancel)
         outputs[mode] = _render_held(tr, held_views)
+        photographed[mode] = tr.exposure.photographed if tr.exposure is not None else None
         seconds[mode] = time.perf_counter() - t0
         if tr.medium is not None:
             coefficients[mode] = {k: v for k, v in tr.medium.effective_coefficients().items() if k != "units"}
@@ -427,7 +432,7 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
         masks = common_cover(outputs, modes, scored_alpha)
     scores: dict[str, ModeScore] = {}
     for mode in modes:
-        s = _score(outputs[mode], targets, masks, cfg.window)
+        s = _score(outputs[mode], targets, masks, cfg.window, photographed[mode])
         scores[mode] = ModeScore(seconds=seconds[mode], coefficients=coefficients.get(mode, {}),
                                  measured_effect=measured.get(mode), measurement=kinds.get(mode), **s)
         log.info("probe %s: held-back PSNR %.2f dB%s (%.1f s)", mode, s["psnr"],

@@ -206,8 +206,12 @@ class Trainer:
         return render_outputs(self.gaussians, view, medium, self.max_sh_degree, self.cfg.backend, background)
 
     def predict(self, view: View) -> Tensor:
-        """The photo this model predicts for ``view`` (with water in medium modes), clamped. [H, W, 3]"""
-        return torch.from_numpy(self.outputs(view).I)
+        """The photo this model predicts for ``view`` (with water in medium modes, and the survey's fall-off where
+        training divided it out of the photos), clamped. [H, W, 3]"""
+        I = self.outputs(view).I
+        if self.exposure is not None:
+            I = np.clip(self.exposure.photographed(I), 0.0, 1.0).astype(I.dtype)
+        return torch.from_numpy(I)
 
     def step(self) -> dict[str, float]:
         """One iteration: render a view, loss, backward, Adam, densification."""

@@ -340,3 +340,24 @@ def test_too_few_views_skip_the_probe(tmp_path):
     sel = select_for_job(tmp_path, Scene(views), [np.zeros((48, 64, 3))] * 4, TrainConfig())
     assert sel["chosen"] == "3dgs" and "too few" in sel["reason"] and sel["probe"] == {}
     assert {"requested", "chosen", "reason", "probe", "margin", "budget"} <= set(sel)
+
+
+def test_a_mode_trained_at_even_light_is_scored_against_the_photos_as_taken():
+    """A medium mode trained with the survey's fall-off divided out predicts even light; scored against the
+    held-back photos (which keep it) it lost the race to plain splatting on RUIE A188 (4x fall-off: auto chose
+    3dgs). With the fall-off put back (``photographed``) its score is its fit's."""
+    from types import SimpleNamespace
+
+    from pipeline.medium.fall_off import fall_off_to_remove
+    from pipeline.train.exposure import ViewExposure
+
+    theta = np.array([0.1, -0.3, -0.4, -0.3, 0.05])
+    ex = ViewExposure(1, "linear", 0.0, 0.0, 10, fall_off=fall_off_to_remove({"exposure_field": theta.tolist(),
+                                                                                "field_span": 2.5}))
+    even = np.random.default_rng(1).uniform(0.05, 0.4, (24, 32, 3))
+    photo = ex.photographed(even)
+    out = SimpleNamespace(J=even, A=None, B=None, alpha=np.ones((24, 32)))
+    mask = [np.ones((24, 32), bool)]
+    raw = _score_held([out], [photo], mask)["psnr"]
+    fair = _score_held([out], [photo], mask, photographed=ex.photographed)["psnr"]
+    assert raw < 30 and fair > 60, (raw, fair)  # measured 25.6 dB and exact
