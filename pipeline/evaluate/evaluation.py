@@ -38,10 +38,10 @@ from pipeline.evaluate.metrics import (
 )
 from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
 from pipeline.job.layout import JobLayout
+from pipeline.medium.fall_off import as_photographed
 from pipeline.scene.records import View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel
-from pipeline.train.photo_exposure import as_photographed
 from pipeline.train.render import ViewOutputs, displayed, render_outputs
 
 log = logging.getLogger(__name__)
@@ -84,7 +84,7 @@ def held_out_metrics(rendered: Sequence[Rendered], photos: Sequence[np.ndarray],
     """Held-out scores of the with-water render against the photos, pooled and per view; a view in ``gains``
     (log gains [3], :func:`pipeline.train.photo_exposure.photo_gains`) is rendered at its photo's exposure (the model is
     at the survey's mean), and with the survey's fall-off ``fall_off`` when training divided it out of the photos
-    (:func:`pipeline.train.photo_exposure.as_photographed`)."""
+    (:func:`pipeline.medium.fall_off.as_photographed`)."""
     gains = gains or {}
     pairs = [(np.clip(as_photographed(r.out.I, gains.get(r.view.name), fall_off), 0, 1).astype(np.float32)
               if r.view.name in gains or fall_off is not None else r.out.I, p)

@@ -8,7 +8,7 @@ score, :mod:`pipeline.evaluate.consistency`, sees it as drift with range: edges 
 it: a Gaussian takes the mean light of the places in the frame it was seen at, its view-dependent colour the rest.
 So the field is divided out of every photo with its exposure where training compares it with the model
 (:class:`pipeline.train.exposure.ViewExposure`) and where it is restored; whatever compares the model with a photo
-puts it back (:func:`pipeline.train.photo_exposure.as_photographed`). The restored photos are what an even light
+puts it back (:func:`as_photographed`). The restored photos are what an even light
 would have shown.
 
 The field is divided out at its shape, not its level: it is scaled to a mean of 1 over the frame (linear light),
@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.medium.exposure_gains import field_map, field_values
+from pipeline.scene.exposure import exposed
 
 MIN_SPAN = 1.1  # brightest over darkest over the frame: below it the measured field is left in the photos
 
@@ -72,4 +73,17 @@ def log_fall_off_map(width: int, height: int, theta: np.ndarray) -> np.ndarray:
     return field_map(width, height, theta) - field_level(theta)
 
 
-__all__ = ["MIN_SPAN", "FallOff", "fall_off_to_remove", "field_level", "log_fall_off_at", "log_fall_off_map"]
+def as_photographed(x: np.ndarray, log_gain: np.ndarray | None, theta: np.ndarray | None,
+                    space: str = "srgb") -> np.ndarray:
+    """A prediction [H, W, 3] (values in ``space``, neutral exposure, even light) as the camera recorded it: at
+    exposure ``log_gain`` [3] (None: neutral) and with the fall-off of coefficients ``theta`` [5] put back (None:
+    none was divided out); unclipped, ``x`` itself when neither applies."""
+    lg = None if log_gain is None else np.asarray(log_gain, np.float64)
+    if theta is not None:
+        H, W = x.shape[:2]
+        lg = (0.0 if lg is None else lg) + log_fall_off_map(W, H, theta)[..., None]
+    return x if lg is None else exposed(x, lg, space)
+
+
+__all__ = ["MIN_SPAN", "FallOff", "as_photographed", "fall_off_to_remove", "field_level", "log_fall_off_at",
+           "log_fall_off_map"]

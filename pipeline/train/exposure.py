@@ -24,8 +24,8 @@ from torch import Tensor, nn
 
 from pipeline.medium.estimate import gather_observations
 from pipeline.medium.exposure_fit import fit_exposure_only
-from pipeline.medium.fall_off import FallOff, log_fall_off_map
-from pipeline.scene.exposure import exposed, neutral
+from pipeline.medium.fall_off import FallOff, as_photographed, log_fall_off_map
+from pipeline.scene.exposure import neutral
 from pipeline.scene.records import Scene, View
 
 log = logging.getLogger(__name__)
@@ -71,10 +71,7 @@ class ViewExposure:
         """A prediction [H, W, 3] (physics space, even light) as the camera recorded it: the survey's fall-off
         put back where training divided it out (:func:`pipeline.medium.fall_off.log_fall_off_map`), unclipped;
         ``x`` itself when none was."""
-        if self.fall_off is None or self.fall_off.log_field is None:
-            return x
-        H, W = x.shape[:2]
-        return exposed(x, log_fall_off_map(W, H, self.fall_off.log_field)[..., None], self.space)
+        return as_photographed(x, None, None if self.fall_off is None else self.fall_off.log_field, self.space)
 
     def penalty(self, i: int) -> Tensor:
         """The weighted penalty on view ``i``'s log gains (the step's loss term "exposure"; 0 when held)."""

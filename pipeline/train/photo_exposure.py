@@ -29,9 +29,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.job.layout import JobLayout
-from pipeline.medium.fall_off import log_fall_off_map
+from pipeline.medium.fall_off import as_photographed
 from pipeline.scene.colour import srgb_to_linear
-from pipeline.scene.exposure import exposed
 from pipeline.scene.loader import load_view_image
 from pipeline.scene.records import View
 from pipeline.train.checkpoint import load_checkpoint
@@ -54,22 +53,11 @@ def render_log_ratio(model: TrainedModel, view: View, photo: np.ndarray, log_gai
     return log_ratio(out.I, out.alpha, photo, log_gain, fall_off)
 
 
-def as_photographed(render: np.ndarray, log_gain: np.ndarray | None, fall_off: np.ndarray | None) -> np.ndarray:
-    """A render (sRGB [H, W, 3], neutral exposure, even light) as the camera recorded it: at exposure ``log_gain``
-    [3] and with the survey's fall-off ``fall_off`` (the field's coefficients [5],
-    :func:`pipeline.medium.fall_off.log_fall_off_map`) that training divided out of the photos; unclipped."""
-    lg = None if log_gain is None else np.asarray(log_gain, np.float64)
-    if fall_off is not None:
-        H, W = render.shape[:2]
-        lg = (0.0 if lg is None else lg) + log_fall_off_map(W, H, fall_off)[..., None]
-    return render if lg is None else exposed(render, lg, "srgb")
-
-
 def log_ratio(render: np.ndarray, alpha: np.ndarray, photo: np.ndarray, log_gain: np.ndarray | None,
               fall_off: np.ndarray | None = None) -> np.ndarray | None:
     """Per channel, the median over the covered, usable pixels of log(photo / render) in linear light, with the
     render (sRGB [H, W, 3], at neutral exposure) taken to exposure ``log_gain`` [3] (None: neutral) and the
-    survey's fall-off (:func:`as_photographed`); None where too few pixels are usable."""
+    survey's fall-off (:func:`pipeline.medium.fall_off.as_photographed`); None where too few pixels are usable."""
     render = as_photographed(render, log_gain, fall_off)
     seen = srgb_to_linear(np.clip(np.asarray(photo, np.float64), 0, 1))
     pred = srgb_to_linear(np.clip(np.asarray(render, np.float64), 0, 1))
@@ -88,7 +76,7 @@ def measure_photo_exposure(model: TrainedModel, views: Sequence[View], photos: I
                            ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Every view's log gains [3] (linear light, on the model's exposure) measured against the model (module
     docstring): ``trained`` maps the training views' names to the log gains training used; the other ``views``
-    are held out; ``fall_off``: the survey's fall-off training divided out (:func:`as_photographed`). Returns
+    are held out; ``fall_off``: the survey's fall-off training divided out (put back on the render). Returns
     (name → log gains, what was measured: the corrections' size and the views kept as they were)."""
     corr: dict[str, np.ndarray] = {}
     for v, photo in zip(views, photos, strict=True):
@@ -173,5 +161,5 @@ def survey_exposure(gains: dict[str, np.ndarray]) -> np.ndarray | None:
     return np.mean(list(gains.values()), axis=0) if gains else None
 
 
-__all__ = ["as_photographed", "job_photo_exposure", "log_ratio", "measure_photo_exposure", "photo_fall_off",
+__all__ = ["job_photo_exposure", "log_ratio", "measure_photo_exposure", "photo_fall_off",
            "photo_gains", "removed_fall_off", "render_log_ratio", "survey_exposure"]

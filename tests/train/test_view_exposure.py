@@ -47,8 +47,8 @@ def test_gains_fitted_to_photos_of_one_scene():
 def test_the_surveys_fall_off_is_divided_out_of_the_photo_and_put_back_on_the_render():
     """Training compares the model with the photo at even light (the fall-off divided out with the gains); what
     compares the model with a photo later puts it back (``as_photographed``): the round trip is the photo."""
-    from pipeline.medium.fall_off import fall_off_to_remove, log_fall_off_map
-    from pipeline.train.photo_exposure import as_photographed, removed_fall_off
+    from pipeline.medium.fall_off import as_photographed, fall_off_to_remove, log_fall_off_map
+    from pipeline.train.photo_exposure import removed_fall_off
 
     theta = np.array([0.1, -0.2, -0.3, -0.2, 0.05])
     fall = fall_off_to_remove({"exposure_field": theta.tolist(), "field_span": 2.0})
