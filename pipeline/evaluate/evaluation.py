@@ -156,6 +156,11 @@ def _coefficients(medium: dict, truth: dict, metres_per_unit: float) -> dict[str
     }
 
 
+def channel_bias(image: np.ndarray, clean: np.ndarray) -> list[float]:
+    """Mean of ``image`` − ``clean`` per channel over the frame ([H, W, 3] each).  # [3]"""
+    return [round(float(x), 4) for x in (np.asarray(image, np.float64) - clean).reshape(-1, 3).mean(0)]
+
+
 def seen_scores(names: Sequence[str], restored: list[tuple[np.ndarray, np.ndarray]],
                 photos: list[tuple[np.ndarray, np.ndarray]], seen: Sequence[np.ndarray]) -> dict[str, Any]:
     """Restored J and the photos against the clean images (``(image, clean)`` pairs) over only the pixels some
@@ -202,7 +207,9 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
         "restored": image_scores(restored, lp),
         "input": image_scores(unrestored, lp),
         # Per view, so a restoration that fails on one view (a far oblique one) is not hidden by the pool.
-        "per_view": [{"name": n, "restored_psnr": pooled_psnr([r]), "input_psnr": pooled_psnr([u])}
+        # and the mean error per channel (restored − truth): a veil left on, or taken off twice, is flat.
+        "per_view": [{"name": n, "restored_psnr": pooled_psnr([r]), "input_psnr": pooled_psnr([u]),
+                      "bias": channel_bias(*r)}
                      for n, r, u in zip(names, restored, unrestored, strict=True)],
         # The same over the pixels some training view saw: unseen seabed can only be invented, not restored.
         "seen": seen_scores(names, restored, unrestored, seen),

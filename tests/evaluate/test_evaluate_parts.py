@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.config import SynthConfig
-from pipeline.evaluate.evaluation import json_safe, speed_vs_error
+from pipeline.evaluate.evaluation import channel_bias, json_safe, speed_vs_error
 from pipeline.scene.align import fit_similarity, umeyama, view_in_estimated_frame
 from pipeline.scene.records import Camera, Scene, View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, GroundTruthError, find_ground_truth, load_ground_truth
@@ -40,6 +40,13 @@ def test_curve_views_are_a_few_evenly_spaced_held_out_views():
     assert curve_subset(2) == [0, 1]
     assert curve_subset(7) == [0, 3, 6]
     assert curve_subset(1) == [0] and curve_subset(0) == []
+
+
+def test_channel_bias_is_the_mean_error_per_channel():
+    clean = np.random.default_rng(0).uniform(0.2, 0.6, (12, 16, 3))
+    veil = clean + np.array([0.0, 0.05, -0.02])  # a flat green veil left on, blue taken off
+    assert channel_bias(veil, clean) == pytest.approx([0.0, 0.05, -0.02], abs=1e-4)
+    assert channel_bias(clean, clean) == [0.0, 0.0, 0.0]
 
 
 def test_json_safe_replaces_infinite_scores():

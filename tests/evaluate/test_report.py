@@ -66,6 +66,8 @@ def test_report_json_follows_its_schema_and_holds_real_numbers(job, record_prope
     # The model with water, rendered from the true cameras, must look like the photos about as well as it does
     # from its own cameras: the check that the true cameras were carried into the model's world correctly.
     assert abs(rest["with_water"]["psnr"] - t["psnr"]) < 3.0
+    for pv in rest["per_view"]:  # the veil left on (or taken off twice) per channel: no larger than the error
+        assert len(pv["bias"]) == 3 and np.mean(np.square(pv["bias"])) <= 10 ** (-pv["restored_psnr"] / 10) + 1e-9
     seen = rest["seen"]  # restoration over the pixels some training view saw
     record_property("restored_seen_psnr", seen["restored_psnr"])
     assert 0.3 < seen["fraction"] <= 1.0 and [p["name"] for p in seen["per_view"]] == rest["views"]
