@@ -29,6 +29,7 @@ from pipeline.job.options import JobOptions
 from pipeline.job.runner import run_job
 from pipeline.synth.exposure import EXPOSURE_FILE, expose_scene
 from pipeline.synth.photo import PhotoSynthConfig, generate_photo_scene
+from pipeline.synth.water import TRUE_WATER_FILE
 
 log = logging.getLogger("bench.exposure_arms")
 
@@ -39,7 +40,7 @@ BEFORE_TRAIN = ("ingest", "sfm")
 def make_scenes(root: Path, seed: int, preset: str, size: tuple[int, int], views: int,
                 water_space: str) -> tuple[Path, Path]:
     plain, varied = root / f"scene-{seed}-plain", root / f"scene-{seed}-varied"
-    if not (plain / "water.json").is_file():
+    if not (plain / TRUE_WATER_FILE).is_file():
         generate_photo_scene(PhotoSynthConfig(views=views, width=size[0], height=size[1], preset=preset, seed=seed,
                                               water_space=water_space),
                              plain)

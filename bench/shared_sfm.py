@@ -20,7 +20,7 @@ from pipeline.job.layout import JobLayout
 def share_sfm(job: Path, other: Path, photos: Path) -> None:
     """Make ``other`` a copy of ``job`` (ingest and SfM done) whose photos are ``photos``' files of the same names.
     Nothing is done when ``other`` already holds its SfM marker (a resumed bench)."""
-    if (other / ".stages" / "sfm.json").is_file():
+    if JobLayout(other).marker("sfm").is_file():
         return
     shutil.rmtree(other, ignore_errors=True)
     shutil.copytree(job, other)

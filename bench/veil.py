@@ -27,13 +27,14 @@ from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions
 from pipeline.job.runner import run_job
 from pipeline.synth.photo import PhotoSynthConfig, generate_photo_scene
+from pipeline.synth.water import TRUE_WATER_FILE
 
 log = logging.getLogger("bench.veil")
 
 
 def scene(root: Path, preset: str, seed: int, altitude: tuple[float, float], size: tuple[int, int]) -> Path:
     out = root / f"scene-{preset}-{seed}"
-    if not (out / "water.json").is_file():
+    if not (out / TRUE_WATER_FILE).is_file():
         generate_photo_scene(PhotoSynthConfig(views=24, width=size[0], height=size[1], preset=preset, seed=seed,
                                               altitude_range=altitude, oblique_fraction=0.0, water_space="linear"),
                              out)
