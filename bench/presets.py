@@ -1,4 +1,4 @@
-"""The presets table of the README: each training preset run as a whole job on one generated scene.
+"""The presets table of docs/RESULTS.md ("Presets"): each training preset run as a whole job on one generated scene.
 
 For every preset: generate (once) a 24-view `medium` scene, run the job (ingest → sfm → classify → train →
 evaluate → export) in the requested mode, and read the report: wall time per stage, held-out PSNR with water,

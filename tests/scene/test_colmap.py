@@ -88,7 +88,7 @@ def test_classic_three_file_text_model_loads(tmp_path: Path) -> None:
         shutil.copy(RUIE / "sparse_ref" / f"{n}.txt", tmp_path / f"{n}.txt")
     rec = read_reconstruction(tmp_path)
     assert rec.num_reg_images() == 19 and rec.num_points3D() == 1871
-    assert abs(rec.compute_mean_reprojection_error() - 1.11) < 0.01  # README: 1.11 px
+    assert abs(rec.compute_mean_reprojection_error() - 1.11) < 0.01  # shared/data/real README: 1.11 px
 
 
 def test_distorted_camera_is_a_typed_error() -> None:

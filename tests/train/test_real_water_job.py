@@ -10,7 +10,8 @@ far_share 1.4 %, 10.6 % and 18 % in different runs, and "9.5 % with ``depth_band
 today the term off gives far_share 0 here too (R/G 0.439, 2.1 % black). At this size the test guards the
 outcome, not that one term; the term's effect shows on the full-size job (24 % black sand before it, 2.1 %).
 
-Full-size numbers (400x300, 3000 iterations) are in docs/DECISIONS.md, "The water must not eat the scene".
+The design is in docs/DECISIONS.md, "The water must not eat the scene"; the current full-size real-set figures are
+in docs/RESULTS.md, "Real surveys".
 """
 
 from __future__ import annotations
