@@ -236,6 +236,13 @@ class TrainConfig:
             raise ValueError(f"background must have 3 components, got {self.background}")
 
 
+def medium_densify(densify: DensifyConfig) -> DensifyConfig:
+    """``densify`` as a medium mode runs it: refinement stops ``medium_refine_factor`` times later, and the factor
+    is spent (1.0), so applying this twice changes nothing."""
+    return dataclasses.replace(densify, refine_stop=round(densify.refine_stop * densify.medium_refine_factor),
+                               medium_refine_factor=1.0)
+
+
 def rescheduled(cfg: TrainConfig, iterations: int, *, checkpoint_every: int, max_gaussians: int) -> TrainConfig:
     """``cfg`` as a run of ``iterations``: the 30k schedule (densification, SH warm-up) compressed to fit
     (``DensifyConfig.scaled``), this checkpoint cadence and Gaussian cap (0 = no cap); every other field kept.
@@ -280,4 +287,4 @@ def train_preset(name: str) -> TrainConfig:
     return from_dict(TrainConfig, to_dict(TRAIN_PRESETS[name]))
 
 __all__ = ["DensifyConfig", "MediumConfig", "SfmConfig", "SynthConfig", "TRAIN_PRESETS", "TrainConfig", "from_dict",
-           "rescheduled", "scaled_train_config", "to_dict", "train_preset"]
+           "medium_densify", "rescheduled", "scaled_train_config", "to_dict", "train_preset"]

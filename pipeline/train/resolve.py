@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from dataclasses import replace
 from typing import Any
 
-from pipeline.config import MediumConfig, TrainConfig, rescheduled, train_preset
+from pipeline.config import MediumConfig, TrainConfig, medium_densify, rescheduled, train_preset
 from pipeline.job.options import JobOptions
 from pipeline.train.hooks import curve_every
 from pipeline.train.schedule import survey_cap, survey_iterations
@@ -62,7 +62,8 @@ def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] 
     - with a ``selection`` (``pipeline.train.probe.select_for_job``): its budget's SH degree and Gaussian cap;
     - ``opts.seed``; the integer downscale that brings ``width`` (the scene's image width) to at most
       ``opts.max_width``; held-out evaluation on the speed-vs-error curve's schedule;
-    - medium modes with a ``water`` decision: the controller's settings (:func:`medium_with_water`).
+    - medium modes: refinement stopping ``medium_refine_factor`` later (:func:`medium_densify`), and with a
+      ``water`` decision the controller's settings (:func:`medium_with_water`).
     """
     cfg = train_preset(opts.preset)  # also refuses an unknown preset name
     iterations = opts.iterations
@@ -81,6 +82,8 @@ def resolve_train_config(opts: JobOptions, width: int, water: Mapping[str, Any] 
         sh_degree = selection["budget"]["sh_degree"]
         densify = replace(densify, max_gaussians=selection["budget"]["max_gaussians"])
     medium = cfg.medium
+    if mode != "3dgs":  # refinement goes on while the medium settles (DensifyConfig.medium_refine_factor), applied
+        densify = medium_densify(densify)  # here, once: train/config.json is the schedule that runs
     if mode != "3dgs" and water is not None:
         medium = medium_with_water(medium, water)
     return replace(cfg, mode=mode, seed=opts.seed, downscale=training_downscale(opts, width),

@@ -73,18 +73,14 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
 def job_schedule(cfg: TrainConfig, views: int, train_scene, explicit: bool) -> dict:
     """The schedule block of train_result.json and report.json (``pipeline.train.schedule.Schedule``)."""
-    from dataclasses import replace
-
     from pipeline.scene.records import scaled_view
     from pipeline.train.schedule import RULE, Schedule, coarse_iterations, iterations_factor
     from pipeline.water.controller import medium_start_iteration
 
     cam = scaled_view(train_scene.views[0], cfg.downscale).camera
     n = len(train_scene.views)
-    d = cfg.densify
+    d = cfg.densify  # resolved: in a medium mode its refine_stop is already the later one (medium_densify)
     medium = cfg.mode != "3dgs"
-    if medium:  # what the trainer does with the schedule in a medium mode
-        d = replace(d, refine_stop=round(d.refine_stop * d.medium_refine_factor))
     medium_start = medium_start_iteration(cfg.iterations, cfg.medium.start_fraction) if medium else None
     coarse = coarse_iterations(cfg.iterations, cfg.coarse_fraction, medium_start)
     small = scaled_view(scaled_view(train_scene.views[0], cfg.downscale), cfg.coarse_downscale).camera

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from pipeline.config import TrainConfig, from_dict, to_dict
+from pipeline.config import TrainConfig, from_dict, medium_densify, to_dict
 from pipeline.job.layout import CHECKPOINT_NAME
 from pipeline.medium.fall_off import fall_off_to_remove
 from pipeline.medium.term import MediumTerm
@@ -115,8 +115,8 @@ class Trainer:
                                            self.device)
         self.optimizers = make_optimizers(self.gaussians, cfg, self.extent)
         densify = cfg.densify
-        if cfg.mode != "3dgs":  # growth goes on while the medium settles (DensifyConfig.medium_refine_factor)
-            densify = replace(densify, refine_stop=round(densify.refine_stop * densify.medium_refine_factor))
+        if cfg.mode != "3dgs":  # growth goes on while the medium settles; a job's resolved config has it already
+            densify = medium_densify(densify)  # (factor 1.0), a config built by hand (probe, benches) gets it here
         self.densifier = Densifier(densify, scene_scale=self.extent)
         self.densifier.check(self.gaussians, self.optimizers)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)  # [3]

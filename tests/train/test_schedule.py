@@ -9,7 +9,7 @@ from dataclasses import replace
 import jsonschema
 import numpy as np
 
-from pipeline.config import train_preset
+from pipeline.config import medium_densify, train_preset
 from pipeline.evaluate.report import SCHEMA_FILE
 from pipeline.evaluate.report_html import _schedule
 from pipeline.job.options import JobOptions
@@ -37,11 +37,15 @@ def test_resolved_configs_by_survey_size():
     base = resolve_train_config(opts, 320, None, None)
     assert resolve_train_config(opts, 320, None, None, views=24) == base  # nothing moves at the reference
     assert resolve_train_config(opts, 320, None, None, views=12) == base
-    assert base.iterations == 3000 and base.densify == fast.densify
+    # a medium mode refines 1.5x longer (DensifyConfig.medium_refine_factor), resolved here, once
+    assert base.iterations == 3000 and base.densify == medium_densify(fast.densify)
+    assert base.densify.refine_stop == 2250 and base.densify.medium_refine_factor == 1.0
+    plain = resolve_train_config(replace(opts, mode="3dgs"), 320, None, None)
+    assert plain.densify == fast.densify and plain.densify.refine_stop == 1500
     big = resolve_train_config(opts, 640, None, None, views=150)
     assert big.iterations == 7500 and big.densify.max_gaussians == 625_000
     # refinement and resets follow the run's length; the refine window stays the preset's
-    assert (big.densify.refine_start, big.densify.refine_stop) == (125, 3750)
+    assert (big.densify.refine_start, big.densify.refine_stop) == (125, 5625)
     assert big.densify.refine_every == fast.densify.refine_every == 100
     assert big.densify.reset_every == 1000 and big.checkpoint_every == 1250  # 6 checkpoints a run, as fast
     huge = resolve_train_config(opts, 640, None, None, views=300)
@@ -49,7 +53,7 @@ def test_resolved_configs_by_survey_size():
     # --iterations wins over the rule; the budget still follows the survey
     short = resolve_train_config(replace(opts, iterations=2000), 640, None, None, views=300)
     assert short.iterations == 2000 and short.densify.max_gaussians == 1_250_000
-    assert short.densify.refine_stop == 1000
+    assert short.densify.refine_stop == 1500
     paper = resolve_train_config(replace(opts, preset="paper"), 640, None, None, views=96)
     assert paper.iterations == 60_000 and paper.densify.max_gaussians == 0
 
@@ -76,6 +80,7 @@ def test_the_report_block_states_the_rule_and_its_numbers():
     html = _schedule(block)
     assert "7500 iterations" in html and "57.2 passes" in html and "625000" in html
     assert "iteration 2500" in html and "Iterations 1-2500 trained at 160x120" in html
-    three = job_schedule(replace(cfg, mode="3dgs"), 150, train_views, explicit=True)
+    three = job_schedule(resolve_train_config(replace(opts, mode="3dgs", iterations=7500), 640, None, None, views=150),
+                         150, train_views, explicit=True)
     assert three["refine_stop"] == 3750 and three["medium_start"] is None and three["explicit_iterations"]
     assert "set by --iterations" in _schedule(three)

@@ -3,6 +3,8 @@ a held-out PSNR floor, and cancel + checkpoint + resume matching an uninterrupte
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -16,9 +18,11 @@ from pipeline.config import (
     to_dict,
     train_preset,
 )
+from pipeline.job.options import JobOptions
 from pipeline.scene.records import Camera, Scene, View
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.train.image_losses import ssim
+from pipeline.train.resolve import resolve_train_config
 from pipeline.train.setup import (
     active_sh_degree,
     initial_gaussians,
@@ -27,7 +31,7 @@ from pipeline.train.setup import (
     prepare_images,
     scene_extent,
 )
-from pipeline.train.trainer import CHECKPOINT_NAME, TrainingCancelled, config_changes, train
+from pipeline.train.trainer import CHECKPOINT_NAME, Trainer, TrainingCancelled, config_changes, train
 
 # ---- fast unit tests ------------------------------------------------------------------------------------
 
@@ -236,3 +240,16 @@ def test_cancel_checkpoint_resume_matches_straight_run(synth_scene, tmp_path):
     for k in a:
         torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=k)
     assert resumed.metrics["loss"] == pytest.approx(straight.metrics["loss"], rel=1e-5)
+
+
+@pytest.mark.parametrize("mode", ["3dgs", "homogeneous", "dualphys"])
+def test_the_saved_config_is_the_schedule_the_trainer_runs(synth_scene, mode):
+    """Resolve once (issue 41): train/config.json of a job is what its trainer uses, in a medium mode too (the
+    longer refinement of DensifyConfig.medium_refine_factor is in it, not added again by the trainer)."""
+    scene, images, _, _ = synth_scene
+    cfg = resolve_train_config(JobOptions(mode=mode), 160, None, None, views=24)
+    saved = from_dict(TrainConfig, json.loads(json.dumps(to_dict(cfg))))  # what train/config.json holds
+    trainer = Trainer(scene, images, saved)
+    assert trainer.densifier.cfg == saved.densify
+    stop = 1500 if mode == "3dgs" else 2250  # fast; a medium mode refines 1.5x longer
+    assert trainer.densifier.strategy.refine_stop_iter == saved.densify.refine_stop == stop
