@@ -14,7 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
-from pipeline.evaluate.consistency_truth import UNCAPPED, scene_consistency
+from pipeline.restore.consistency_truth import UNCAPPED, scene_consistency
 
 log = logging.getLogger("bench.consistency")
 

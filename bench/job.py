@@ -124,11 +124,11 @@ def step_profile(job: Path, size: str, steps: int) -> dict:
 
     from pipeline.config import TrainConfig, from_dict
     from pipeline.job.layout import JobLayout
+    from pipeline.ops.image_losses import ssim
     from pipeline.profiling import collecting
     from pipeline.scene.loader import load_scene
     from pipeline.scene.split import split_views
     from pipeline.train.checkpoint import load_checkpoint
-    from pipeline.train.image_losses import ssim
     from pipeline.train.setup import load_training_images
     from pipeline.train.trainer import Trainer
 
@@ -308,7 +308,7 @@ def main() -> None:
     scene = args.out / f"scene_{args.views}_{args.size}"
     if not (scene / TRUE_WATER_FILE).exists():
         generate_scene(SynthConfig(views=args.views, width=w, height=h, preset="medium", seed=0), scene)
-    # inductor's cache for the compiled loss graphs (pipeline.train.jit), emptied now: round 0 of a checkout that
+    # inductor's cache for the compiled loss graphs (pipeline.ops.jit), emptied now: round 0 of a checkout that
     # compiles pays the compile (a fresh install's first job at this image size), later rounds load it
     graphs = args.out / "inductor-cache"
     if not args.keep_graphs:

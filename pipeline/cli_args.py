@@ -1,4 +1,4 @@
-"""Argument types the ``dualphys`` sub-commands share: the pipeline's (pipeline/cli.py) and the client's
+"""Argument types the ``dualphys`` sub-commands share: the pipeline's (cli/main.py) and the client's
 (service/client/cli.py). The two command modules do not import each other."""
 
 from __future__ import annotations

@@ -206,7 +206,7 @@ class TrainConfig:
     eval_every: int = 0  # held-out PSNR every this many iterations (0 = at the end only)
     log_every: int = 100  # log a progress line every this many iterations
     # torch.compile the step's loss graphs: "auto" for runs of >= 2,000 iterations when a C++ compiler is found,
-    # "on", "off" (pipeline.train.jit; the same losses, fused: numbers agree to float rounding)
+    # "on", "off" (pipeline.ops.jit; the same losses, fused: numbers agree to float rounding)
     compile_losses: str = "auto"
     # Coarse start (issue 16): iterations 1..coarse_fraction x iterations train on the images and cameras shrunk
     # coarse_downscale times (area averaging), never past the medium's start in medium modes

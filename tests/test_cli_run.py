@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
+from cli.main import main
 from pipeline.config import SynthConfig, TrainConfig, from_dict
 from pipeline.job.layout import JobLayout
 from pipeline.synth.procedural import generate_scene

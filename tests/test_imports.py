@@ -12,7 +12,7 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGES = ("pipeline", "service", "worker")
+PACKAGES = ("pipeline", "service", "worker", "cli")
 
 
 def _module_name(path: Path) -> str:
@@ -134,3 +134,56 @@ def test_no_module_shadows_the_standard_library_or_an_installed_package():
     taken = (set(sys.stdlib_module_names) | installed) - set(PACKAGES)
     bad = sorted(m for m in _modules() if m.rpartition(".")[2] in taken)
     assert not bad, f"modules named like a standard-library module or an installed package: {bad}"
+
+
+# pipeline's packages (and top-level modules) from the bottom up: each may import only those in earlier layers or
+# its own. The stages read the job contract and the libraries below them; evaluate scores a trained model; restore
+# and export read evaluate's results; cli (the `dualphys` command) sits above pipeline and service.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("config", "profiling", "cli_args"),
+    ("job",),
+    ("scene",),
+    ("ingest",),
+    ("synth", "sfm"),
+    ("splat",),
+    ("ops",),
+    ("water",),
+    ("medium",),
+    ("train",),
+    ("evaluate",),
+    ("restore",),
+    ("export",),
+)
+TOP = ("service", "worker", "cli")  # above pipeline, in this order
+
+
+def _layer_of(module: str) -> tuple[int, str]:
+    parts = module.split(".")
+    if parts[0] != "pipeline":
+        return len(LAYERS) + TOP.index(parts[0]), parts[0]
+    if len(parts) == 1:  # pipeline/__init__.py
+        return -1, "pipeline"
+    name = parts[1]
+    for i, layer in enumerate(LAYERS):
+        if name in layer:
+            return i, name
+    raise AssertionError(f"{module}: package pipeline.{name} is in no layer of tests/test_imports.py LAYERS")
+
+
+def test_packages_import_only_layers_below_them():
+    graph = _graph()
+    bad = []
+    for mod, targets in graph.items():
+        src, src_pkg = _layer_of(mod)
+        for t in targets:
+            dst, dst_pkg = _layer_of(t)
+            if dst > src or (dst == src and dst_pkg != src_pkg and src >= 0):
+                bad.append(f"{mod} -> {t}")
+    assert not bad, "imports against the layer order (tests/test_imports.py LAYERS):\n" + "\n".join(sorted(bad))
+
+
+def test_the_pipeline_imports_nothing_of_the_service():
+    graph = _graph()
+    bad = sorted(f"{m} -> {t}" for m, ts in graph.items() if m.startswith("pipeline") for t in ts
+                 if t.split(".")[0] in TOP)
+    assert not bad, bad

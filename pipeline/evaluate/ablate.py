@@ -143,7 +143,7 @@ def row_config(row: AblationRow, cfg: AblationConfig, water: dict):
 
 
 def _score_row(trainer, views, photos, clean) -> dict[str, float]:
-    from pipeline.evaluate.metrics import mean_ssim, pooled_psnr
+    from pipeline.ops.metrics import mean_ssim, pooled_psnr
     outs = [trainer.outputs(v) for v in views]
     with_water = list(zip([o.I for o in outs], photos, strict=True))
     restored = list(zip([o.J for o in outs], clean, strict=True))

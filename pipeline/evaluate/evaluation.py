@@ -29,16 +29,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.evaluate.metrics import (
+from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
+from pipeline.job.layout import JobLayout
+from pipeline.medium.fall_off import as_photographed
+from pipeline.ops.metrics import (
     coefficient_error,
     mean_ssim,
     per_metre,
     pooled_psnr,
     scale_aligned_depth_error,
 )
-from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
-from pipeline.job.layout import JobLayout
-from pipeline.medium.fall_off import as_photographed
 from pipeline.scene.records import View, scaled_view
 from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
 from pipeline.train.model import TrainedModel

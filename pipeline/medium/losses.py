@@ -43,7 +43,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from pipeline.train.image_losses import photometric_losses
+from pipeline.ops.image_losses import photometric_losses
 
 EPS = 1e-6
 

@@ -22,10 +22,10 @@ from pipeline.config import MediumConfig
 from pipeline.medium.losses import LossWeights, loss_terms
 from pipeline.medium.measure import measure_water
 from pipeline.medium.model import Medium, MediumOutput
+from pipeline.ops.jit import dynamic_rows, maybe_compiled
 from pipeline.profiling import section
 from pipeline.scene.records import Camera, Scene, View, ray_length_factor, view_ranges
-from pipeline.train.jit import dynamic_rows, maybe_compiled
-from pipeline.train.quality import view_point_ranges
+from pipeline.scene.seen import view_point_ranges
 from pipeline.water.controller import medium_start_iteration
 
 log = logging.getLogger(__name__)
@@ -200,7 +200,7 @@ def view_losses(medium: Medium, J: Tensor, alpha: Tensor, depth: Tensor, target:
     """One view's medium and eq. 13's weighted terms: (terms, the view's effective β_D [3], detached).
 
     J [H,W,3] premultiplied, alpha [H,W,1], z-depth [H,W,1], target [H,W,3]. Pure (no state changes), so
-    ``pipeline.train.jit`` may compile it; this eager function is the compiled graph's reference twin."""
+    ``pipeline.ops.jit`` may compile it; this eager function is the compiled graph's reference twin."""
     # Each use takes its own view of J and alpha, in this order: autograd adds their gradients in the order the
     # graph recorded them, and the eager run repeats the runs before this function existed bit for bit only so.
     D = _nchw(depth) * ev.ray
@@ -248,7 +248,7 @@ class MediumTerm:
             rm = point_range_map(v, pixels, ranges)
             self.evidence.append(ViewEvidence(ray, pixels, ranges, rm.range, cover_range_map(rm, ranges),
                                               rm.fitted.to(rm.range.dtype)))
-        if compiled:  # every view's point count in one compiled graph (pipeline.train.jit)
+        if compiled:  # every view's point count in one compiled graph (pipeline.ops.jit)
             for ev in self.evidence:
                 dynamic_rows(ev.pixels), dynamic_rows(ev.ranges)
         self.transmission = view_transmission(scene, views, init["init_beta"])  # per view: mean A at its range
@@ -287,7 +287,7 @@ class MediumTerm:
 
     def losses(self, view_index: int, J: Tensor, alpha: Tensor, depth: Tensor, target: Tensor) -> dict[str, Tensor]:
         """Eq. 13's weighted terms for one view (their sum is L_total): :func:`view_losses`, compiled when the
-        run asked for it (``pipeline.train.jit``)."""
+        run asked for it (``pipeline.ops.jit``)."""
         with section("losses: medium nets + terms fwd"):
             weighted, beta_eff = self._view_losses(
                 self.medium, J, alpha, depth, target, self.evidence[view_index], self._estimate_t,

@@ -46,7 +46,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         res = {"mode": model.mode, "restored": 0, "note": NOTHING_TO_RESTORE, "views": []}
         atomic_write_json(layout.restore_result, res)
         return res
-    from pipeline.evaluate.rerender import training_views
+    from pipeline.train.model import training_views
 
     views = training_views(job, state)
     sigma = job_water_sigma(job)

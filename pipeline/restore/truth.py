@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.evaluate.metrics import pooled_psnr
 from pipeline.job.layout import JobLayout
+from pipeline.ops.metrics import pooled_psnr
 from pipeline.restore.lens import LensGrid
 from pipeline.restore.sample import sample_maps
 from pipeline.scene.records import Camera, LensCamera, View

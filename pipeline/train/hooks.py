@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from torch import Tensor
 
-from pipeline.evaluate.metrics import pooled_psnr
+from pipeline.ops.metrics import pooled_psnr
 from pipeline.scene.records import View
 
 if TYPE_CHECKING:

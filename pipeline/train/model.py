@@ -4,12 +4,16 @@ it was trained with. Rendering it is :func:`pipeline.train.render.render_outputs
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 
 from pipeline.config import MediumConfig, from_dict
+from pipeline.job.layout import JobLayout
 from pipeline.medium.model import Medium
+from pipeline.scene.loader import load_scene
+from pipeline.scene.records import View, scaled_view
 from pipeline.train.setup import rendered_sh_degree
 
 
@@ -31,6 +35,12 @@ class TrainedModel:
     sh_degree: int  # the SH degree the model was trained up to (capped at the medium's limit in medium modes)
     background: tuple[float, float, float]  # what training composited behind the Gaussians
     colour_space: str = "srgb"  # where its physics ran: "linear" renders J and I in linear light (render.displayed)
+
+
+def training_views(job: Path, state: dict) -> list[View]:
+    """The job's cameras at the resolution its model was trained at."""
+    down = int(state["config"].get("downscale", 1))
+    return [scaled_view(v, down) for v in load_scene(JobLayout(job).scene).views]
 
 
 def model_from_state(state: dict[str, Any]) -> TrainedModel:

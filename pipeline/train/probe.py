@@ -331,7 +331,7 @@ def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndar
     ``photographed``: the prediction as the camera recorded it (the survey's fall-off put back where the mode's
     training divided it out, :meth:`pipeline.train.exposure.ViewExposure.photographed`), so every mode is scored
     against the photos as they are."""
-    from pipeline.evaluate.metrics import pooled_psnr
+    from pipeline.ops.metrics import pooled_psnr
 
     att, bs = [], []
     for out, m in zip(outputs, masks, strict=True):

@@ -33,7 +33,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from pipeline.scene.records import Scene, Sightings, View, ray_length_factor
+from pipeline.scene.records import Scene, View, ray_length_factor
+from pipeline.scene.seen import view_point_ranges
 
 COVER_ALPHA = 0.5  # a pixel is covered when the Gaussians' alpha is at least this
 POINT_DEPTH_TOL = 0.25  # a point's pixel renders its surface when the rendered distance is within 25 % of it
@@ -71,32 +72,6 @@ class ViewQuality:
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
-
-
-def _points_seen(scene: Scene, view: View) -> tuple[np.ndarray, np.ndarray]:
-    """(pixel positions [K, 2], point indices [K]) of the sparse points ``view`` saw (see :func:`view_points`)."""
-    s: Sightings | None = (scene.sightings or {}).get(view.name)
-    if s is not None and len(s.xy):
-        return np.asarray(s.xy, dtype=np.float64) * (view.camera.width / s.width), np.asarray(s.point)
-    if not len(scene.points):
-        return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
-    u, v, _ = view.project(scene.points)
-    ok = np.isfinite(u) & (u >= 0) & (u < view.camera.width) & (v >= 0) & (v < view.camera.height)
-    return np.stack([u[ok], v[ok]], axis=1), np.nonzero(ok)[0]
-
-
-def view_points(scene: Scene, view: View) -> np.ndarray:
-    """Pixel positions [K, 2] (pixel-centre convention, at ``view.camera``'s resolution) of the sparse points
-    ``view`` saw: its track observations when the model has them, else the points projecting inside it."""
-    return _points_seen(scene, view)[0]
-
-
-def view_point_ranges(scene: Scene, view: View) -> tuple[np.ndarray, np.ndarray]:
-    """The sparse points ``view`` saw: pixel positions [K, 2] as :func:`view_points`, and each point's distance
-    from the camera centre [K] (scene units)."""
-    xy, ids = _points_seen(scene, view)
-    pts = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
-    return xy, (np.linalg.norm(pts[ids] - view.center, axis=1) if len(ids) else np.zeros(0))
 
 
 def box_mean(x: np.ndarray, k: int) -> np.ndarray:

@@ -29,6 +29,8 @@ from pipeline.config import TrainConfig, from_dict, medium_densify, to_dict
 from pipeline.job.layout import CHECKPOINT_NAME
 from pipeline.medium.fall_off import fall_off_to_remove
 from pipeline.medium.term import MediumTerm
+from pipeline.ops.image_losses import photometric_losses
+from pipeline.ops.jit import maybe_compiled, should_compile
 from pipeline.profiling import section
 from pipeline.scene.records import Scene, View, scaled_view
 from pipeline.splat.densify import Densifier
@@ -36,8 +38,6 @@ from pipeline.splat.gaussians import GAUSSIAN_KEYS
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.train.exposure import ViewExposure, exposure_without_water
 from pipeline.train.hooks import Hook, ProgressFn, checkpoint_hook, eval_hook, log_hook, progress_hook
-from pipeline.train.image_losses import photometric_losses
-from pipeline.train.jit import maybe_compiled, should_compile
 from pipeline.train.render import RenderOutput, ViewOutputs, render_gaussians, render_outputs, view_tensors
 from pipeline.train.schedule import coarse_iterations
 from pipeline.train.setup import (
@@ -120,7 +120,7 @@ class Trainer:
         self.densifier = Densifier(densify, scene_scale=self.extent)
         self.densifier.check(self.gaussians, self.optimizers)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)  # [3]
-        self.compiled = should_compile(cfg.compile_losses, cfg.iterations)  # the loss graphs (pipeline.train.jit)
+        self.compiled = should_compile(cfg.compile_losses, cfg.iterations)  # the loss graphs (pipeline.ops.jit)
         self._photometric = maybe_compiled(photometric_losses, self.compiled)
         self.medium: MediumTerm | None = None
         if cfg.mode != "3dgs":

@@ -1,5 +1,5 @@
 """A client of the dualphys service for another machine: the functions behind ``dualphys submit / status / jobs /
-download / cancel`` (pipeline/cli.py is the thin command line on top).
+download / cancel`` (cli/main.py is the thin command line on top).
 
 - :mod:`service.client.remote`: :class:`ServiceClient`, typed calls over httpx with the Bearer key; every
   non-2xx answer and every transport failure becomes a :class:`ClientError` with the service's stable code.

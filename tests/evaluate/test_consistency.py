@@ -128,7 +128,7 @@ def test_sightings_are_carried_into_the_distorted_photo():
 
 
 def test_the_report_says_why_a_job_has_no_score():
-    from pipeline.evaluate.report import consistency_of
+    from pipeline.export.report import consistency_of
 
     assert consistency_of(None)["reason"].startswith("the job has no restored photos")
     assert consistency_of({"restored": 0, "note": "mode 3dgs models no water"}) == {

@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
-from pipeline.evaluate.report import build_report
+from pipeline.export.report import build_report
 from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions
 from pipeline.job.runner import run_job

@@ -14,7 +14,7 @@ import json
 
 import pytest
 
-from pipeline.evaluate.rerender import render_job
+from pipeline.export.rerender import render_job
 from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions
 from pipeline.job.runner import run_job

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from svc_helpers import KEYS, METRICS, small_jpegs, zip_bytes
 
-from pipeline.cli import main
+from cli.main import main
 from service.client.cli import KEY_ENV, SERVER_ENV
 from service.client.download import NET_CHUNK, download_artifact
 from service.client.remote import ServiceClient

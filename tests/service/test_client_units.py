@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from svc_helpers import free_port
 
-from pipeline.cli import main
+from cli.main import main
 from service.client.cli import KEY_ENV, SERVER_ENV
 from service.client.download import local_path, select
 from service.client.remote import Artifact, ClientError, ServiceClient

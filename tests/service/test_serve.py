@@ -1,7 +1,7 @@
 """``dualphys serve`` (issue 13, items 7 and 11): the environment and the flags compose the documented way, two
 owners can be configured without Python, every flag has help, and SIGTERM stops the worker and beat too.
 
-The process under test is the real command (``python -m pipeline.cli serve``): uvicorn in it, a Celery worker
+The process under test is the real command (``python -m cli serve``): uvicorn in it, a Celery worker
 and beat as its children, the real Redis (DB 15, a key prefix of its own)."""
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def _alive(pid: int) -> bool:
 
 
 def test_every_serve_flag_has_help() -> None:
-    from pipeline.cli import build_parser
+    from cli.main import build_parser
 
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
@@ -91,7 +91,7 @@ def test_serve_reads_the_environment_and_stops_its_children_on_sigterm(tmp_path:
            "DUALPHYS_API_KEYS": json.dumps({v: k for k, v in KEYS.items()}), "DUALPHYS_MIN_FREE_BYTES": "0"}
     log_path = tmp_path / "serve.log"
     with open(log_path, "wb") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", "--port", str(port), "--log-level",
+        proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(port), "--log-level",
                                  "warning"], cwd=tmp_path, env=env, stdout=out, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, start_new_session=True)
     children: list[int] = []

@@ -179,7 +179,7 @@ def test_missing_texture_folder_is_a_clear_error(tmp_path):
 
 @needs_photos
 def test_cli_synth_photo_family(tmp_path, capsys):
-    from pipeline.cli import main
+    from cli.main import main
 
     out = tmp_path / "cli"
     assert main(["synth", "--family", "photo", "--out", str(out), "--views", "4", "--size", "48x36",
@@ -237,7 +237,7 @@ def test_march_matches_a_dense_brute_force_reference():
 def test_cli_synth_a_survey_at_constant_range(tmp_path, capsys):
     """--altitude and --oblique: lawnmower lines at 2.4-2.6 m and no oblique pass, so every view sees the seabed
     from about the same distance (the narrow-range case of the water fit); they are the photo family's only."""
-    from pipeline.cli import main
+    from cli.main import main
     from pipeline.scene.colmap import read_colmap
 
     out = tmp_path / "narrow"
@@ -256,7 +256,7 @@ def test_cli_synth_a_survey_at_constant_range(tmp_path, capsys):
 def test_cli_synth_a_camera_fall_off(tmp_path):
     """--fall-off: every photo darker towards its top and corners (linear light), recorded in fall_off.json; the
     field has mean 1 and spans 1.7x at 0.3 (AIMS Erub's survey mean image: 1.6x over its blocks)."""
-    from pipeline.cli import main
+    from cli.main import main
     from pipeline.scene.colour import srgb_to_linear
     from pipeline.scene.images import read_image
     from pipeline.synth.exposure import FALL_OFF_FILE, fall_off_field

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from pipeline.config import SynthConfig
-from pipeline.evaluate.metrics import pooled_psnr
+from pipeline.ops.metrics import pooled_psnr
 from pipeline.scene.images import read_image, write_image
 from pipeline.scene.records import LensCamera, ray_length_factor
 from pipeline.synth.ground_truth import find_ground_truth, is_generated_scene, load_ground_truth

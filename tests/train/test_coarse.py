@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pipeline.config import TrainConfig, train_preset
-from pipeline.train.image_losses import photometric_losses
+from pipeline.ops.image_losses import photometric_losses
 from pipeline.train.schedule import coarse_iterations
 from pipeline.train.setup import shrink_image
 from pipeline.train.trainer import Trainer

@@ -9,7 +9,8 @@ alone), in linear light as the job does by default.
 
 Measured when written (16 views 200x150, seed 0, 1,500 iterations, homogeneous; share of a training view's
 covered pixels rendered nearer than 0.8 of the true depth, mean over views / worst view), in both of numba's
-cache states (freshly compiled rasterizer kernels train a slightly different model than cached ones: docs/RESULTS.md, "The demo"):
+cache states (freshly compiled rasterizer kernels train a slightly different model than cached ones: docs/RESULTS.md,
+"The demo"):
 with the near side 0.7 % / 8.0 % (cached), 3.6 % / 21.8 % (fresh, as on CI); switched off (``near`` 1e9)
 14.5 % / 53.9 % (cached), 10.1 % / 40.7 % (fresh). About 2 min on a loaded 2-core machine.
 

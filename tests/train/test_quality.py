@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.scene.records import Camera, Scene, Sightings, View
+from pipeline.scene.seen import view_points
 from pipeline.train.quality import (
     collapse_warnings,
     lost_view,
     opacity_histogram,
-    view_points,
     view_quality,
 )
 

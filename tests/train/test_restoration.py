@@ -15,7 +15,7 @@ from dataclasses import replace
 import pytest
 
 from pipeline.config import SynthConfig, scaled_train_config
-from pipeline.evaluate.metrics import pooled_psnr
+from pipeline.ops.metrics import pooled_psnr
 from pipeline.scene.images import read_image
 from pipeline.scene.loader import load_scene
 from pipeline.scene.split import split_views

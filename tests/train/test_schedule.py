@@ -10,8 +10,8 @@ import jsonschema
 import numpy as np
 
 from pipeline.config import medium_densify, train_preset
-from pipeline.evaluate.report import SCHEMA_FILE
-from pipeline.evaluate.report_html import _schedule
+from pipeline.export.report import SCHEMA_FILE
+from pipeline.export.report_html import _schedule
 from pipeline.job.options import JobOptions
 from pipeline.scene.records import Camera, Scene, View
 from pipeline.train.resolve import resolve_train_config

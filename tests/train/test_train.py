@@ -19,9 +19,9 @@ from pipeline.config import (
     train_preset,
 )
 from pipeline.job.options import JobOptions
+from pipeline.ops.image_losses import ssim
 from pipeline.scene.records import Camera, Scene, View
 from pipeline.train.checkpoint import load_checkpoint, save_checkpoint
-from pipeline.train.image_losses import ssim
 from pipeline.train.resolve import resolve_train_config
 from pipeline.train.setup import (
     active_sh_degree,

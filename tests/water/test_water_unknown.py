@@ -157,7 +157,7 @@ def test_unknown_decision_trains_with_the_medium_settings():
 def test_report_shows_unknown_water_with_its_closest_class_and_reason():
     import jsonschema
 
-    from pipeline.evaluate.report_html import water_sentence
+    from pipeline.export.report_html import water_sentence
 
     d = classify([np.ones((24, 32, 3), np.float32)]).to_dict()
     schema = json.loads((Path(__file__).resolve().parents[2] / "pipeline/data/report.schema.json").read_text())

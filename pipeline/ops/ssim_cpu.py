@@ -8,7 +8,7 @@ costs ~3.2 ms (docs/DECISIONS.md, "Whole-job speed", session 25).
 
 ``ssim_planes`` is a ``torch.library`` custom operator with its own autograd formula, so a ``torch.compile``d
 loss graph keeps it as one opaque call instead of breaking around the numba code. Its twin is
-:func:`pipeline.train.image_losses.ssim_map` (torch), which tests hold it against, forward and backward.
+:func:`pipeline.ops.image_losses.ssim_map` (torch), which tests hold it against, forward and backward.
 Registering the two operators at import defines them and runs nothing; numba loads on the first call.
 """
 
@@ -23,7 +23,7 @@ def _kernels():
     from pipeline.splat._cpu_backend import pin_threading_layer
 
     pin_threading_layer()  # SSIM may be the first parallel numba call of a process (evaluation)
-    from pipeline.train import _ssim_kernels
+    from pipeline.ops import _ssim_kernels
 
     return _ssim_kernels
 

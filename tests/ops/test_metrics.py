@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.evaluate.metrics import (
+from pipeline.ops.metrics import (
     coefficient_error,
     mean_ssim,
     per_metre,

@@ -1,4 +1,4 @@
-"""The compiled loss graphs against their eager twins (``pipeline.train.jit``), forward and backward.
+"""The compiled loss graphs against their eager twins (``pipeline.ops.jit``), forward and backward.
 
 The first compile of each graph costs ~1 min on an empty inductor cache (once per machine and size: the cache is
 on disk), so this module compiles three: the homogeneous and the dualphys medium losses, and L1 + SSIM.
@@ -12,8 +12,8 @@ import torch
 from pipeline.medium.losses import LossWeights
 from pipeline.medium.model import Medium
 from pipeline.medium.term import ViewEvidence, view_losses
-from pipeline.train import jit
-from pipeline.train.image_losses import photometric_losses
+from pipeline.ops import jit
+from pipeline.ops.image_losses import photometric_losses
 
 pytestmark = pytest.mark.skipif(not jit.compiler_available(), reason="inductor needs a C++ compiler")
 

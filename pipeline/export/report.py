@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 
 from pipeline.evaluate.evaluation import json_safe, stage_timings
-from pipeline.evaluate.metrics import per_metre
 from pipeline.job.layout import RENDER_FOLDERS, JobLayout
 from pipeline.job.markers import atomic_write_json, atomic_write_text
+from pipeline.ops.metrics import per_metre
 from pipeline.scene.records import scaled_view
 
 log = logging.getLogger(__name__)
@@ -348,7 +348,7 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
 def write_report(job: str | Path, out: str | Path | None = None, export_s: float | None = None) -> list[Path]:
     """Write report.json, report.html and the curve's PNG into ``out`` (default: the job's output folder, where
     they have the names of ``JobLayout``); returns the paths written."""
-    from pipeline.evaluate.report_html import render_html
+    from pipeline.export.report_html import render_html
 
     t0 = time.perf_counter()
     job = Path(job)

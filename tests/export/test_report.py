@@ -17,7 +17,7 @@ import pytest
 
 from pipeline.config import SynthConfig
 from pipeline.evaluate.evaluation import evaluate_job
-from pipeline.evaluate.report import SCHEMA_FILE, build_report, validate_report, write_report
+from pipeline.export.report import SCHEMA_FILE, build_report, validate_report, write_report
 from pipeline.job.layout import JobLayout
 from pipeline.job.markers import atomic_write_json
 from pipeline.job.options import JobOptions
@@ -250,7 +250,7 @@ def test_export_writes_the_spz_beside_the_ply(job, record_property):
 def test_quality_names_the_runs_cap_when_it_is_above_the_budget():
     """An explicit mode densifies up to the preset's cap, past the pixel budget the count is judged against: the
     report says both, so 89,901 Gaussians against a budget of 56,763 does not read as a fault."""
-    from pipeline.evaluate.report_html import _quality
+    from pipeline.export.report_html import _quality
 
     q = {"n_gaussians": 89_901, "budget": 56_763, "cap": 100_000, "coverage_min": 1.0, "warnings": []}
     assert "(budget 56,763; the run&#x27;s cap 100,000)" in _quality(q)  # the line is HTML-escaped
@@ -260,7 +260,7 @@ def test_quality_names_the_runs_cap_when_it_is_above_the_budget():
 
 def test_selection_says_how_much_the_photos_drift_with_range():
     """The photos' own drift (the auto mode's no-water test) is a sentence in report.html; undefined, with why."""
-    from pipeline.evaluate.report_html import _selection
+    from pipeline.export.report_html import _selection
 
     r = {"mode": "3dgs", "water": None, "selection": {"mode": "3dgs", "reason": "the photos show no water",
                                                       "drift": {"defined": True, "score": 0.004}}}

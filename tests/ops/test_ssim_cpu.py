@@ -1,4 +1,4 @@
-"""The numba SSIM operator (``pipeline.train.ssim_cpu``) against its torch twin ``image_losses.ssim_map``: value
+"""The numba SSIM operator (``pipeline.ops.ssim_cpu``) against its torch twin ``image_losses.ssim_map``: value
 and gradient, at image sizes down to smaller than the window, on black and saturated images; finite differences
 in float64; the same bits on every call; one graph under ``torch.compile`` (no break around the operator)."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pipeline.train.image_losses import _C1, _C2, gaussian_window_1d, photometric_losses, ssim, ssim_map
-from pipeline.train.ssim_cpu import ssim_planes
+from pipeline.ops.image_losses import _C1, _C2, gaussian_window_1d, photometric_losses, ssim, ssim_map
+from pipeline.ops.ssim_cpu import ssim_planes
 
 
 def _twin(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -100,8 +100,8 @@ def test_one_graph_under_torch_compile():
 
 def test_warmup_compiles_both_kernels():
     """``dualphys warmup``'s call: both kernels have a compiled signature for float32 planes afterwards."""
-    from pipeline.train import _ssim_kernels
-    from pipeline.train.ssim_cpu import compile_ssim_kernels
+    from pipeline.ops import _ssim_kernels
+    from pipeline.ops.ssim_cpu import compile_ssim_kernels
 
     assert compile_ssim_kernels() >= 0.0
     assert _ssim_kernels.ssim_fwd.signatures and _ssim_kernels.ssim_bwd.signatures

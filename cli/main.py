@@ -152,10 +152,10 @@ def _db(x: float | None) -> str:
 def cmd_demo(args: argparse.Namespace) -> int:
     """Generate a scene with known water and run the job on it end to end."""
     from pipeline.config import SynthConfig
-    from pipeline.evaluate.metrics import per_metre
     from pipeline.job.layout import JobLayout
     from pipeline.job.options import JobOptions, StageContext
     from pipeline.job.runner import run_job
+    from pipeline.ops.metrics import per_metre
     from pipeline.scene.align import align_to_reference
     from pipeline.scene.loader import load_scene
     from pipeline.synth.procedural import generate_scene
@@ -276,7 +276,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_render(args: argparse.Namespace) -> int:
     """Restored / with-water (or any exported) images of a trained job, for its views and novel ones."""
-    from pipeline.evaluate.rerender import RenderError, render_job
+    from pipeline.export.rerender import RenderError, render_job
     from pipeline.scene.loader import SceneLayoutError
 
     views: str | list[str] = args.views
@@ -333,9 +333,9 @@ def cmd_train_classifier(args: argparse.Namespace) -> int:
 
 
 def cmd_warmup(args: argparse.Namespace) -> int:
+    from pipeline.ops.ssim_cpu import compile_ssim_kernels
     from pipeline.restore.warmup import compile_restore_kernels
     from pipeline.splat.warmup import compile_kernels
-    from pipeline.train.ssim_cpu import compile_ssim_kernels
 
     print(json.dumps({"rasterizer": compile_kernels(), "ssim": compile_ssim_kernels(),
                       "restore": compile_restore_kernels()}))

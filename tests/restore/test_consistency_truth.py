@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from pipeline.config import SynthConfig
-from pipeline.evaluate.consistency_truth import scene_consistency
+from pipeline.restore.consistency_truth import scene_consistency
 from pipeline.synth.procedural import generate_scene
 
 

@@ -1,7 +1,7 @@
 """numba kernels: SSIM's five Gaussian blurs, its map and its mean, and the closed-form backward (row-parallel).
 
 Planes [P, H, W] (every channel of every image is one plane), a 1-D window g [S] (S = 2R + 1, symmetric), zero
-padding outside the image, exactly as :func:`pipeline.train.image_losses.ssim_map` (the torch twin).
+padding outside the image, exactly as :func:`pipeline.ops.image_losses.ssim_map` (the torch twin).
 
 1. ``ssim_fwd``: the vertical pass of the five blurs (x, y, x², y², xy) for every image row in one sweep over the
    rows of x and y, then per row the horizontal pass, the SSIM value s and its three partial derivatives

@@ -1,5 +1,5 @@
 """Image comparison primitives: L1, SSIM and the 3DGS loss made of them. Pure tensor functions, channel-last
-images (PSNR is an evaluation metric: ``pipeline.evaluate.metrics``).
+images (PSNR is an evaluation metric: ``pipeline.ops.metrics``).
 
 Images are ``[..., H, W, C]`` floats in [0, 1] (what the rasterizer returns), any leading batch shape.
 """
@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from pipeline.train.ssim_cpu import ssim_planes
+from pipeline.ops.ssim_cpu import ssim_planes
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -66,7 +66,7 @@ def ssim(a: Tensor, b: Tensor) -> Tensor:
     """Mean SSIM over pixels, channels and batch. [..., H, W, C] x2 -> []
 
     float32 CPU images whose second one needs no gradient (a render against its target) go through
-    :func:`pipeline.train.ssim_cpu.ssim_planes` (numba, ~5x faster forward and backward); everything else, and
+    :func:`pipeline.ops.ssim_cpu.ssim_planes` (numba, ~5x faster forward and backward); everything else, and
     the tests' reference, through the torch twin :func:`ssim_map`."""
     _check_pair(a, b)
     if a.device.type != "cpu" or a.dtype != torch.float32 or b.dtype != torch.float32 or b.requires_grad:

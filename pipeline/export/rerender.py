@@ -11,21 +11,14 @@ import numpy as np
 
 from pipeline.job.layout import RENDER_FOLDERS, JobLayout
 from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
-from pipeline.scene.records import View, scaled_view
+from pipeline.scene.records import View
+from pipeline.train.model import training_views
 
 log = logging.getLogger(__name__)
 
 
 class RenderError(ValueError):
     """The job cannot be rendered as asked (not trained yet, unknown view name, bad folder name)."""
-
-
-def training_views(job: Path, state: dict) -> list[View]:
-    """The job's cameras at the resolution its model was trained at."""
-    from pipeline.scene.loader import load_scene
-
-    down = int(state["config"].get("downscale", 1))
-    return [scaled_view(v, down) for v in load_scene(JobLayout(job).scene).views]
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
@@ -140,4 +133,4 @@ def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, ma
     return len(views)
 
 
-__all__ = ["RenderError", "path_views", "render_job", "training_views"]
+__all__ = ["RenderError", "path_views", "render_job"]

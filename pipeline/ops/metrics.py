@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.train.image_losses import ssim as _ssim
+from pipeline.ops.image_losses import ssim as _ssim
 
 ImagePair = tuple[np.ndarray, np.ndarray] | tuple[torch.Tensor, torch.Tensor]
 
