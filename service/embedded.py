@@ -89,7 +89,7 @@ def serve(host: str = "127.0.0.1", port: int = 8000, data_dir: str | os.PathLike
     import uvicorn
 
     from .app import create_app
-    from .settings import load_settings
+    from .core.settings import load_settings
 
     cfg = serve_config(data_dir, redis_url, api_keys, api_keys_file)
     data, redis_url, api_keys = cfg.data_dir, cfg.redis_url, cfg.api_keys

@@ -13,7 +13,7 @@ log = logging.getLogger(__name__)
 def healthy() -> bool:
     import redis
 
-    from service.settings import load_settings
+    from service.core.settings import load_settings
 
     settings = load_settings()
     try:

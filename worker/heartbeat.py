@@ -53,8 +53,8 @@ _current: Heartbeat | None = None
 def on_worker_ready(sender=None, **_) -> None:
     """Celery ``worker_ready`` (sender: the worker's consumer)."""
     global _current
-    from service.coord import Coordinator
-    from service.settings import load_settings
+    from service.core.coord import Coordinator
+    from service.core.settings import load_settings
 
     settings = load_settings()
     try:

@@ -24,11 +24,11 @@ from dataclasses import dataclass
 
 from pipeline.job.layout import JobLayout
 from service.compose import Components
-from service.coord import Coordinator, RunLock
-from service.jobs import pipeline_stages
-from service.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, WebhookDelivery, overall_progress
-from service.redact import redact_paths
-from service.store import JobNotFound, JobStore
+from service.core.coord import Coordinator, RunLock
+from service.jobs.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, WebhookDelivery, overall_progress
+from service.jobs.ops import pipeline_stages
+from service.jobs.redact import redact_paths
+from service.jobs.store import JobNotFound, JobStore
 from service.webhooks.events import plan_event
 
 log = logging.getLogger(__name__)

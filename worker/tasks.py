@@ -10,8 +10,8 @@ import time
 from celery.signals import worker_ready, worker_shutdown
 
 from service.compose import compose
-from service.dispatch import DELIVER_WEBHOOK_TASK, RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK
-from service.settings import load_settings
+from service.core.dispatch import DELIVER_WEBHOOK_TASK, RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK
+from service.core.settings import load_settings
 
 from .app import app
 from .heartbeat import on_worker_ready, on_worker_shutdown

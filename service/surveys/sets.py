@@ -27,8 +27,8 @@ from typing import BinaryIO
 from pipeline.ingest.video import VIDEO_EXTENSIONS
 from pipeline.scene.images import DECODABLE_EXTENSIONS
 
-from ..safe_fs import FolderTree
 from .exif import read_exif_time
+from .safe_fs import FolderTree
 
 IMAGE_SUFFIXES = DECODABLE_EXTENSIONS | VIDEO_EXTENSIONS  # what a set is made of: photos and videos
 HASH_CHUNK = 1 << 20

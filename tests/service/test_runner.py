@@ -12,7 +12,7 @@ import pytest
 import pipeline.job.runner
 from pipeline.job.options import JobCancelled
 from service.compose import Components
-from service.store import new_job_id
+from service.jobs.store import new_job_id
 from worker.runner import execute_stage
 
 STAGES = pipeline.job.runner.STAGES

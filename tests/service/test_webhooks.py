@@ -26,7 +26,7 @@ from svc_helpers import (
 )
 
 import pipeline.job.runner
-from service.store import new_job_id
+from service.jobs.store import new_job_id
 from service.webhooks.callback import CallbackRefused, check_callback_url, host_allowed
 from service.webhooks.deliver import deliver
 from service.webhooks.signing import SIGNATURE_HEADER, sign, verify

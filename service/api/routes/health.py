@@ -23,7 +23,7 @@ def health() -> HealthOut:
 def _workers(services) -> tuple[dict[str, int], list[str]]:
     """Live workers per queue, and a warning for each queue jobs need that nobody consumes. The API stays
     ready without workers (uploads are accepted and queued); the warnings say why nothing would run."""
-    from service.dispatch import CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE
+    from service.core.dispatch import CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE
 
     live = services.coord.workers()
     per_queue = {q: sum(q in qs for qs in live.values()) for q in (CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE)}

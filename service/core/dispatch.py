@@ -1,5 +1,5 @@
 """Sending stage tasks: one message per (job, stage, run). The API and the workers both send through this, each
-with its own Celery app (the API's producer from ``service.broker``, the worker's own app), handed in by
+with its own Celery app (the API's producer from ``service.core.broker``, the worker's own app), handed in by
 whoever builds the dispatcher (``service.compose``)."""
 
 from __future__ import annotations

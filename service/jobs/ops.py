@@ -11,11 +11,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .coord import Coordinator
-from .dispatch import Dispatcher, DispatchError
+from service.core.coord import Coordinator
+from service.core.dispatch import Dispatcher, DispatchError
+from service.webhooks.events import plan_event
+
 from .manifest import TERMINAL_STATES, JobError, Manifest, RunRecord, StageRecord, WebhookDelivery
 from .store import JobNotFound, JobStore
-from .webhooks.events import plan_event
 
 log = logging.getLogger(__name__)
 

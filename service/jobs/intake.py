@@ -3,9 +3,9 @@ stage on it with this deployment's limits (hostile archives, undecodable images 
 here), then create the job and queue its remaining stages.
 
 ``Idempotency-Key``: a repeat of a request (same archive bytes, same options) gets the first job back; the key is
-claimed in Redis while the first request uploads and recorded on disk (``service.idempotency``) once its job
-exists. Refusals are :class:`service.uploads.UploadError` (HTTP status, stable code, message); a broker that does
-not take the first stage is a :class:`service.dispatch.DispatchError` after the job was created (failed with
+claimed in Redis while the first request uploads and recorded on disk (``service.jobs.idempotency``) once its job
+exists. Refusals are :class:`service.jobs.uploads.UploadError` (HTTP status, stable code, message); a broker that does
+not take the first stage is a :class:`service.core.dispatch.DispatchError` after the job was created (failed with
 ``broker_unavailable``; a retry re-sends it). Whatever else goes wrong, nothing is left on disk.
 """
 
@@ -22,18 +22,18 @@ import anyio
 from pydantic import ValidationError
 
 from pipeline.job.layout import JobLayout
+from service.core.coord import Coordinator
+from service.core.dispatch import DispatchError
+from service.core.settings import Settings
+from service.webhooks.callback import CallbackRefused, check_callback_url
 
-from .coord import Coordinator
-from .dispatch import DispatchError
 from .idempotency import IdempotencyIndex
-from .jobs import JobOps
 from .manifest import Manifest
+from .ops import JobOps
 from .options import JobOptionsIn
 from .redact import redact_paths
-from .settings import Settings
 from .store import JobNotFound, new_job_id
 from .uploads import UploadError, check_declared_length, receive_upload
-from .webhooks.callback import CallbackRefused, check_callback_url
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +153,7 @@ class UploadIntake:
 
     def _claim_key(self, owner: str, key: str, job_id: str) -> str | None:
         """None when ``key`` is new (claimed for ``job_id``), else what holds it: a job id, or ``pending:<id>``.
-        The record on disk is asked first: it survives a Redis that lost its data (service.idempotency)."""
+        The record on disk is asked first: it survives a Redis that lost its data (service.jobs.idempotency)."""
         rec = self.idempotency.lookup(owner, key)
         if rec is not None:
             return rec.job_id
