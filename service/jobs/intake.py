@@ -21,7 +21,11 @@ from pathlib import Path
 import anyio
 from pydantic import ValidationError
 
+from pipeline.ingest.archive import ArchiveError
+from pipeline.ingest.intake import IngestConfig, IngestError
 from pipeline.job.layout import JobLayout
+from pipeline.job.options import JobOptions, StageContext
+from pipeline.job.runner import run_stage
 from service.core.coord import Coordinator
 from service.core.dispatch import DispatchError
 from service.core.settings import Settings
@@ -166,11 +170,6 @@ class UploadIntake:
     def _ingest(self, job_dir: Path, opts: dict) -> tuple[dict, float]:
         """The pipeline's ingest stage (``pipeline.job.runner.run_stage``) with this deployment's limits; its completion
         marker makes the worker skip it. Refusals become UploadError."""
-        from pipeline.ingest.archive import ArchiveError
-        from pipeline.ingest.intake import IngestConfig, IngestError
-        from pipeline.job.options import JobOptions, StageContext
-        from pipeline.job.runner import run_stage
-
         s = self.settings
         t0 = time.time()
         ctx = StageContext(ingest=IngestConfig(min_images=s.min_images, limits=s.archive_limits()))
