@@ -19,10 +19,10 @@ from .api.deps import Services
 from .api.errors import error_body, install_error_handlers
 from .api.routes import artifacts, health, jobs, surveys
 from .api.routes.web import mount_dashboard
-from .broker import producer
 from .compose import compose
-from .dispatch import TaskSender
-from .settings import Settings, load_settings
+from .core.broker import producer
+from .core.dispatch import TaskSender
+from .core.settings import Settings, load_settings
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +34,7 @@ Authenticate with `Authorization: Bearer <API key>`. Errors are JSON `{"error": 
 
 def create_app(settings: Settings | None = None, celery_app: TaskSender | None = None) -> FastAPI:
     """The API for ``settings`` (default: the environment). Stages and scans are queued through ``celery_app``
-    (default: ``service.broker.producer(settings)``, which sends to the queues ``worker.app`` consumes)."""
+    (default: ``service.core.broker.producer(settings)``, which sends to the queues ``worker.app`` consumes)."""
     settings = settings or load_settings()
     services = Services.of(compose(settings, celery_app if celery_app is not None else producer(settings)))
 

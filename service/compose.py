@@ -2,7 +2,7 @@
 
 :func:`compose` is called once per API process (``service.app.create_app``) and once per task (``worker.tasks``:
 the stage task and both survey scans). The Celery app that queues the next stages is the caller's and is handed
-in: the API's producer (``service.broker.producer``) or the worker's own app. So nothing under ``service``
+in: the API's producer (``service.core.broker.producer``) or the worker's own app. So nothing under ``service``
 imports ``worker``; the worker imports the service (tests/service/test_boundaries.py).
 
 Building connects to nothing and creates no folder: Redis is reached on first use, and the API's lifespan makes
@@ -13,12 +13,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .coord import Coordinator
-from .dispatch import Dispatcher, TaskSender
-from .idempotency import IdempotencyIndex
-from .jobs import JobOps
-from .settings import Settings
-from .store import JobStore
+from .core.coord import Coordinator
+from .core.dispatch import Dispatcher, TaskSender
+from .core.settings import Settings
+from .jobs.idempotency import IdempotencyIndex
+from .jobs.ops import JobOps
+from .jobs.store import JobStore
 from .surveys.registry import SurveyRegistry
 from .surveys.scan import ScanConfig
 

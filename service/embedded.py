@@ -24,6 +24,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+import redis
+import uvicorn
+
+from .app import create_app
+from .core.settings import load_settings
+
 log = logging.getLogger(__name__)
 
 KEY_FILE = "api-key"
@@ -85,12 +91,6 @@ def serve(host: str = "127.0.0.1", port: int = 8000, data_dir: str | os.PathLike
     environment, then the defaults (module docstring, :func:`serve_config`). Raises RuntimeError when Redis
     does not answer at the Redis URL.
     """
-    import redis
-    import uvicorn
-
-    from .app import create_app
-    from .settings import load_settings
-
     cfg = serve_config(data_dir, redis_url, api_keys, api_keys_file)
     data, redis_url, api_keys = cfg.data_dir, cfg.redis_url, cfg.api_keys
     data.mkdir(parents=True, exist_ok=True)

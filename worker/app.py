@@ -7,7 +7,7 @@ functions load it inside the prefork child that runs them: a child forked after 
 
 Queues: ``cpu`` (every stage but train, and train unless ``DUALPHYS_TRAIN_QUEUE=gpu``), ``gpu`` (train on GPU
 workers), ``surveys`` (folder scans from beat, webhook deliveries). The message contract (broker, serialisation,
-exchange, queues) is ``service.broker``'s, shared with the API's producer; this module adds the consumer's side.
+exchange, queues) is ``service.core.broker``'s, shared with the API's producer; this module adds the consumer's side.
 Delivery: acks_late + prefetch 1 + reject on worker loss, so a task whose worker dies is delivered again; the broker's
 visibility timeout redelivers a task that was never acknowledged, and the per-job lock plus stage markers make
 every redelivery harmless. The tasks hand this app to ``service.compose`` to queue the next stages.
@@ -17,9 +17,9 @@ from __future__ import annotations
 
 from celery import Celery
 
-from service.broker import APP_NAME, broker_config
-from service.dispatch import SCAN_SURVEYS_TASK, SURVEY_QUEUE
-from service.settings import Settings, load_settings
+from service.core.broker import APP_NAME, broker_config
+from service.core.dispatch import SCAN_SURVEYS_TASK, SURVEY_QUEUE
+from service.core.settings import Settings, load_settings
 
 
 def celery_config(settings: Settings) -> dict:

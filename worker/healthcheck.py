@@ -7,14 +7,14 @@ import logging
 import sys
 import tempfile
 
+import redis
+
+from service.core.settings import load_settings
+
 log = logging.getLogger(__name__)
 
 
 def healthy() -> bool:
-    import redis
-
-    from service.settings import load_settings
-
     settings = load_settings()
     try:
         redis.Redis.from_url(settings.redis_url, socket_connect_timeout=3, socket_timeout=3).ping()

@@ -12,6 +12,9 @@ import logging
 import os
 import threading
 
+from service.core.coord import Coordinator
+from service.core.settings import load_settings
+
 log = logging.getLogger(__name__)
 
 EVERY_S = 5.0
@@ -53,9 +56,6 @@ _current: Heartbeat | None = None
 def on_worker_ready(sender=None, **_) -> None:
     """Celery ``worker_ready`` (sender: the worker's consumer)."""
     global _current
-    from service.coord import Coordinator
-    from service.settings import load_settings
-
     settings = load_settings()
     try:
         queues = sorted(q.name for q in sender.task_consumer.queues)

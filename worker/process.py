@@ -29,6 +29,7 @@ def prepare_stage_process() -> None:
         return  # signal handlers can only be set from the main thread (a threads pool keeps glog's)
     previous_term = signal.getsignal(signal.SIGTERM)
     try:
+        # lazy: pycolmap is heavy and native; only the stage process may load it, once, to undo its handlers
         import pycolmap  # noqa: F401  (installs glog's handlers; undone just below)
     except ImportError:
         pass

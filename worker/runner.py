@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 import time
@@ -23,12 +24,14 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 from pipeline.job.layout import JobLayout
+from pipeline.job.options import JobCancelled, JobOptions, StageContext
+from pipeline.job.runner import run_stage
 from service.compose import Components
-from service.coord import Coordinator, RunLock
-from service.jobs import pipeline_stages
-from service.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, WebhookDelivery, overall_progress
-from service.redact import redact_paths
-from service.store import JobNotFound, JobStore
+from service.core.coord import Coordinator, RunLock
+from service.jobs.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, WebhookDelivery, overall_progress
+from service.jobs.ops import pipeline_stages
+from service.jobs.redact import redact_paths
+from service.jobs.store import JobNotFound, JobStore
 from service.webhooks.events import plan_event
 
 log = logging.getLogger(__name__)
@@ -127,9 +130,6 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
     reporter = ProgressReporter(rt, job_id, run_id, stages, {s for s in stages if m.stage(s).status == "done"},
                                 floor=m.progress)
     canceller = CancelCheck(rt.coord, job_id, lock)
-    from pipeline.job.options import JobCancelled, JobOptions, StageContext
-    from pipeline.job.runner import run_stage
-
     ctx = StageContext(on_progress=reporter, should_cancel=canceller, device=rt.settings.device)
     t0 = time.time()
     try:
@@ -214,8 +214,6 @@ def _record_end(rt: Components, job_id: str, run_id: str, stage: str, status: st
 
 def _read_ingest(job_dir) -> dict | None:
     """The ingest stage's result (``ingest.json``) for the job's status: images, skipped, ignored."""
-    import json
-
     try:
         data = json.loads(JobLayout(job_dir).ingest.read_text())
     except (OSError, ValueError) as e:

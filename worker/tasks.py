@@ -10,8 +10,11 @@ import time
 from celery.signals import worker_ready, worker_shutdown
 
 from service.compose import compose
-from service.dispatch import DELIVER_WEBHOOK_TASK, RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK
-from service.settings import load_settings
+from service.core.dispatch import DELIVER_WEBHOOK_TASK, RUN_STAGE_TASK, SCAN_SURVEY_TASK, SCAN_SURVEYS_TASK
+from service.core.settings import load_settings
+from service.surveys.registry import SurveyNotFound
+from service.surveys.scan import scan
+from service.webhooks.deliver import deliver
 
 from .app import app
 from .heartbeat import on_worker_ready, on_worker_shutdown
@@ -44,8 +47,6 @@ def run_stage(self, job_id: str, stage: str, run_id: str) -> str:
 @app.task(name=SCAN_SURVEYS_TASK, ignore_result=True)
 def scan_surveys() -> int:
     """Beat's tick: scan every survey whose interval has passed. Returns how many jobs were submitted."""
-    from service.surveys.scan import scan
-
     rt = compose(load_settings(), app)
     n = 0
     try:
@@ -64,9 +65,6 @@ def scan_surveys() -> int:
 @app.task(name=SCAN_SURVEY_TASK, ignore_result=True)
 def scan_survey(survey_id: str) -> int:
     """Scan one survey now (``POST /v1/surveys/{id}/scan``)."""
-    from service.surveys.registry import SurveyNotFound
-    from service.surveys.scan import scan
-
     rt = compose(load_settings(), app)
     try:
         try:
@@ -83,8 +81,6 @@ def scan_survey(survey_id: str) -> int:
 def deliver_webhook(self, job_id: str, delivery_id: str) -> str:
     """One attempt at a webhook delivery (service.webhooks.deliver); a failed attempt comes back after its
     backoff until the job's record says it was delivered or given up. Never touches a stage."""
-    from service.webhooks.deliver import deliver
-
     rt = compose(load_settings(), self.app)
     try:
         out = deliver(rt, job_id, delivery_id)

@@ -26,7 +26,7 @@ class JobOptions:
     """What a user chooses for a job (CLI flags / API form fields)."""
 
     source: str = ""  # archive file or image folder to ingest
-    # What a client may set (the API's form fields are built from these: service/options.py; "help" is their
+    # What a client may set (the API's form fields are built from these: service/jobs/options.py; "help" is their
     # description there).
     preset: str = field(default="fast", metadata={"help": "training preset: fast | balanced | paper"})
     mode: str = field(default="auto", metadata={

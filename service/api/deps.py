@@ -11,12 +11,12 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.compose import Components
-from service.coord import Coordinator
-from service.intake import UploadIntake
-from service.jobs import JobOps
-from service.manifest import Manifest
-from service.settings import Settings
-from service.store import JobNotFound
+from service.core.coord import Coordinator
+from service.core.settings import Settings
+from service.jobs.intake import UploadIntake
+from service.jobs.manifest import Manifest
+from service.jobs.ops import JobOps
+from service.jobs.store import JobNotFound
 from service.surveys.registry import SurveyRegistry
 
 from .errors import api_error

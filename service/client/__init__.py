@@ -6,6 +6,8 @@ download / cancel`` (cli/main.py is the thin command line on top).
 - :mod:`service.client.zipping`: a folder as a zip written while it uploads (no temporary file).
 - :mod:`service.client.download`: resumable, checksum-verified downloads of a job's artifacts.
 - :mod:`service.client.watch`: polling a job until it ends.
+- :mod:`service.client.errors`: :class:`ClientError`, importable without httpx.
 
-Only httpx is needed beside the standard library (``pip install dualphys[client]``).
+Only httpx is needed beyond what ``dualphys`` itself installs (``pip install dualphys[client]``), and only
+``remote`` imports it: the commands import that module when they connect, so the rest of the CLI runs without it.
 """

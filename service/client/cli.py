@@ -1,7 +1,8 @@
 """The ``dualphys`` sub-commands that talk to a remote service: submit, status, jobs, download, cancel.
 
-Each maps its flags onto one call of :class:`service.client.remote.ServiceClient` (httpx is imported inside the
-commands, so the rest of the CLI works without the client extra). Exit codes: 0 success, 1 a refused key, a
+Each maps its flags onto one call of :class:`service.client.remote.ServiceClient`. That module, the only one
+needing httpx (the ``client`` extra), is imported when a command connects, so the rest of the CLI works without
+the extra. Exit codes: 0 success, 1 a refused key, a
 missing job, an unreachable server or any other refused request, 2 bad command line, and with ``--wait`` 3 when
 the job failed and 4 when it was cancelled.
 """
@@ -16,6 +17,12 @@ import time
 from pathlib import Path
 
 from pipeline.cli_args import positive as _positive
+from pipeline.job.options import COLOUR_SPACES, JOB_MODES, RESTORE_FORMATS
+from service.client.download import download_bundle, download_job
+from service.client.errors import ClientError
+from service.client.progress import JobBar, byte_bar
+from service.client.watch import wait_job
+from service.client.zipping import archive_content_type, file_stream, folder_entries, zip_stream
 
 SERVER_ENV, KEY_ENV = "DUALPHYS_SERVER", "DUALPHYS_KEY"  # no Settings field is named server or key (tested)
 DEFAULT_SERVER = "http://127.0.0.1:8000"  # where `dualphys serve` listens by default
@@ -35,7 +42,7 @@ def _server(args: argparse.Namespace) -> str:
 def _connect(args: argparse.Namespace):
     """A ServiceClient from --server/--key or the environment; None (after the message) when it cannot be made."""
     try:
-        from service.client.remote import ServiceClient
+        from service.client.remote import ServiceClient  # lazy: httpx is the optional client extra
     except ImportError as e:  # httpx missing: the client extra is not installed
         _fail(args.command, f"the client needs httpx ({e}); pip install 'dualphys[client]'")
         return None
@@ -67,9 +74,6 @@ def _job_line(job: dict) -> dict:
 
 def _wait(args: argparse.Namespace, client, job_id: str) -> int:
     """Poll with a progress bar until the job ends; exit 0 done, 3 failed, 4 cancelled."""
-    from service.client.progress import JobBar
-    from service.client.watch import wait_job
-
     bar = JobBar(job_id)
     try:
         job = wait_job(client, job_id, interval_s=args.interval, on_update=bar)
@@ -87,10 +91,6 @@ def _wait(args: argparse.Namespace, client, job_id: str) -> int:
 
 def cmd_submit(args: argparse.Namespace) -> int:
     """A folder (zipped while it uploads) or an archive (sent as is) becomes a job on the server."""
-    from service.client.progress import byte_bar
-    from service.client.remote import ClientError
-    from service.client.zipping import archive_content_type, file_stream, folder_entries, zip_stream
-
     src: Path = args.path
     if src.is_dir():
         entries = folder_entries(src)
@@ -148,8 +148,6 @@ def cmd_submit(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, job_id: str | None, body) -> int:
     """Connect, run ``body(client)`` (returns the exit code) and turn a refused request into its message."""
-    from service.client.remote import ClientError
-
     client = _connect(args)
     if client is None:
         return 1
@@ -190,10 +188,6 @@ def cmd_jobs(args: argparse.Namespace) -> int:
 
 def cmd_download(args: argparse.Namespace) -> int:
     """The job's artifacts into --out, resumable and verified; or --bundle: everything as one zip."""
-    from service.client.download import download_bundle, download_job
-    from service.client.progress import byte_bar
-    from service.client.remote import ClientError
-
     out: Path = args.out or Path(args.job)
     client = _connect(args)
     if client is None:
@@ -257,8 +251,6 @@ def _client_parent() -> argparse.ArgumentParser:
 
 def add_client_commands(sub) -> None:
     """The client sub-commands (submit, status, jobs, download, cancel) on the ``dualphys`` parser."""
-    from pipeline.job.options import COLOUR_SPACES, JOB_MODES, RESTORE_FORMATS
-
     parent = _client_parent()
     wait_help = "poll with a progress bar until the job ends: exit 0 done, 3 failed, 4 cancelled"
 

@@ -10,8 +10,12 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from service.client.remote import Artifact, ClientError, ServiceClient
+from service.client.errors import ClientError
+
+if TYPE_CHECKING:  # annotations only: this module itself needs no httpx
+    from service.client.remote import Artifact, ServiceClient
 
 log = logging.getLogger(__name__)
 

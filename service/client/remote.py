@@ -11,23 +11,13 @@ from typing import Any
 
 import httpx
 
+from service.client.errors import ClientError
+
 log = logging.getLogger(__name__)
 
-TERMINAL_STATES = frozenset({"done", "failed", "cancelled"})
 SUBMIT_ANSWER_S = 1800.0
 """How long a submit waits for its answer once the body is sent: the API unpacks and decodes every image before it
 answers (docs/SERVICE.md, "Creating a job"), minutes for a large survey set."""
-
-
-class ClientError(Exception):
-    """A request that did not succeed. ``status`` is the HTTP status (0: no answer); ``code`` the service's error
-    code, or one of ``connection_failed``, ``timeout``, ``transport_error``, ``bad_response``."""
-
-    def __init__(self, status: int, code: str, message: str):
-        super().__init__(message)
-        self.status = status
-        self.code = code
-        self.message = message
 
 
 @dataclass(frozen=True)

@@ -5,11 +5,16 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
-from service.client.remote import TERMINAL_STATES, ClientError, ServiceClient
+from service.client.errors import ClientError
+
+if TYPE_CHECKING:  # annotations only: this module itself needs no httpx
+    from service.client.remote import ServiceClient
 
 log = logging.getLogger(__name__)
 
+TERMINAL_STATES = frozenset({"done", "failed", "cancelled"})
 TRANSIENT = frozenset({"connection_failed", "timeout", "transport_error"})
 TRANSIENT_STATUS = frozenset({502, 503, 504})
 

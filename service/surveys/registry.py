@@ -24,8 +24,7 @@ from pathlib import Path
 from pydantic import BaseModel, Field, ValidationError
 
 from pipeline.job.markers import atomic_write_text
-
-from ..options import JobOptionsIn
+from service.jobs.options import JobOptionsIn
 
 log = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@
   submission (an image added, replaced or removed) has a new hash and becomes a new job.
 - The set's images are copied into the job folder (``input/``) and checked against the hash while copying, so
   the job never depends on a folder that keeps changing. The folder is read through
-  :class:`service.safe_fs.FolderTree` (no link followed, at any depth, at any moment).
+  :class:`service.surveys.safe_fs.FolderTree` (no link followed, at any depth, at any moment).
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ from pathlib import Path
 from typing import BinaryIO
 
 from pipeline.job.layout import JobLayout
+from service.jobs.manifest import Manifest
+from service.jobs.ops import pipeline_stages
 
-from ..jobs import pipeline_stages
-from ..manifest import Manifest
-from ..safe_fs import FolderTree
 from .registry import SubmittedSet, Survey, SurveyError, SurveyRegistry, SurveyState, WaitingSet
+from .safe_fs import FolderTree
 from .sets import HASH_CHUNK, ImageSet, file_sha256, group_images, list_tree, set_hash, with_exif_times
 
 log = logging.getLogger(__name__)

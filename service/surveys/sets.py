@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import stat
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path, PurePosixPath
@@ -27,8 +28,8 @@ from typing import BinaryIO
 from pipeline.ingest.video import VIDEO_EXTENSIONS
 from pipeline.scene.images import DECODABLE_EXTENSIONS
 
-from ..safe_fs import FolderTree
 from .exif import read_exif_time
+from .safe_fs import FolderTree
 
 IMAGE_SUFFIXES = DECODABLE_EXTENSIONS | VIDEO_EXTENSIONS  # what a set is made of: photos and videos
 HASH_CHUNK = 1 << 20
@@ -101,8 +102,6 @@ def list_tree(tree: FolderTree) -> list[ImageFile]:
 
 
 def _is_regular(mode: int) -> bool:
-    import stat
-
     return stat.S_ISREG(mode)
 
 

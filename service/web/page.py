@@ -1,5 +1,5 @@
 """The dashboard's HTML shell: ``templates/index.html`` with the job options form filled in from the API's own
-option list (``service.options.CLIENT_OPTIONS``), so the form offers exactly what an upload accepts."""
+option list (``service.jobs.options.CLIENT_OPTIONS``), so the form offers exactly what an upload accepts."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from html import escape
 from pathlib import Path
 
 from pipeline.job.options import JobOptions
-from service.options import (
+from service.jobs.options import (
     CLIENT_OPTIONS,
     known_colour_spaces,
     known_modes,

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import httpx
 
-from service.manifest import Manifest, WebhookDelivery
-from service.settings import Settings
-from service.store import JobNotFound
+from service.core.settings import Settings
+from service.jobs.manifest import Manifest, WebhookDelivery
+from service.jobs.store import JobNotFound
 
 from .callback import CallbackRefused, check_callback_url
 from .signing import SIGNATURE_HEADER, sign

@@ -13,7 +13,7 @@ import json
 import secrets
 import time
 
-from service.manifest import TERMINAL_STATES, Manifest, WebhookDelivery
+from service.jobs.manifest import TERMINAL_STATES, Manifest, WebhookDelivery
 
 
 def event_name(state: str) -> str:

@@ -10,7 +10,7 @@ import numpy as np
 from pipeline.export.cameras import cameras_document, export_cameras
 from pipeline.job.layout import JobLayout
 from pipeline.scene.records import Camera, View
-from service.artifacts import list_artifacts
+from service.jobs.artifacts import list_artifacts
 
 
 def _view(name: str, yaw_deg: float, centre: tuple[float, float, float]) -> View:

@@ -98,7 +98,7 @@ def small_video(frames: int = 40, seed: int = 0) -> bytes:
 
 
 def make_settings(data_dir: Path, prefix: str, **over):
-    from service.settings import load_settings
+    from service.core.settings import load_settings
 
     base = dict(api_keys={v: k for k, v in KEYS.items()}, data_dir=data_dir, redis_url=REDIS_URL,
                 redis_prefix=prefix, max_upload_bytes=MAX_UPLOAD, archive_max_entries=MAX_ENTRIES, min_free_bytes=0,
@@ -108,7 +108,7 @@ def make_settings(data_dir: Path, prefix: str, **over):
 
 
 class RecordingDispatcher:
-    """Stands in for service.dispatch.Dispatcher: records what would be sent."""
+    """Stands in for service.core.dispatch.Dispatcher: records what would be sent."""
 
     def __init__(self) -> None:
         self.sent: list[tuple[str, str, str]] = []

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from svc_helpers import REPO, auth, make_settings
 
-from service.dispatch import SCAN_SURVEY_TASK, SURVEY_QUEUE
+from service.core.dispatch import SCAN_SURVEY_TASK, SURVEY_QUEUE
 
 FORBIDDEN = "worker"
 

@@ -21,7 +21,7 @@ from service.client.download import local_path, select
 from service.client.remote import Artifact, ClientError, ServiceClient
 from service.client.watch import wait_job
 from service.client.zipping import archive_content_type, folder_entries, zip_stream
-from service.settings import Settings
+from service.core.settings import Settings
 
 
 def _tree(root: Path) -> dict[str, bytes]:

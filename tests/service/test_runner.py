@@ -1,5 +1,6 @@
 """The stage task's body (``worker.runner.execute_stage``) called directly, with the real Redis, a job folder on
-disk, a dispatcher that only records what it would send, and ``pipeline.job.runner.run_stage`` replaced by a fake:
+disk, a dispatcher that only records what it would send, and the pipeline's ``run_stage`` replaced by a fake where
+the runner calls it (``worker.runner.run_stage``):
 redelivery, locking, cancel, failure codes and crash limits, without Celery or torch."""
 
 from __future__ import annotations
@@ -10,9 +11,11 @@ import time
 import pytest
 
 import pipeline.job.runner
+import service.jobs.ops
+import worker.runner
 from pipeline.job.options import JobCancelled
 from service.compose import Components
-from service.store import new_job_id
+from service.jobs.store import new_job_id
 from worker.runner import execute_stage
 
 STAGES = pipeline.job.runner.STAGES
@@ -40,7 +43,7 @@ def calls(monkeypatch):
         ctx.on_progress(stage, 1.0, "done")
         return {"stage": stage}, False
 
-    monkeypatch.setattr(pipeline.job.runner, "run_stage", fake_run_stage)
+    monkeypatch.setattr(worker.runner, "run_stage", fake_run_stage)
     return record
 
 
@@ -171,20 +174,15 @@ def test_every_attempt_stays_in_the_stage_record(rt, calls) -> None:
     assert not rt.jobs.view(m).worker_lost
 
 
-def test_retry_resumes_from_the_failed_stage(rt, calls) -> None:
+def test_retry_resumes_from_the_failed_stage(rt, calls, monkeypatch) -> None:
     job_id, run_id = new_job(rt)
     assert execute_stage(rt, job_id, STAGES[0], run_id).status == "ran"
     calls.behaviour[STAGES[1]] = lambda ctx: (_ for _ in ()).throw(RuntimeError("disk full"))
     assert execute_stage(rt, job_id, STAGES[1], run_id).status == "failed"
     # the real first_unfinished reads markers; the fake run_stage wrote none, so point it at the failed stage
-    import pipeline.job.runner as pj
-
-    orig = pj.first_unfinished
-    pj.first_unfinished = lambda job, opts: STAGES[1]
-    try:
+    with monkeypatch.context() as patched:
+        patched.setattr(service.jobs.ops, "first_unfinished", lambda job, opts: STAGES[1])
         m = rt.jobs.retry(job_id, "alice")
-    finally:
-        pj.first_unfinished = orig
     assert m.state == "queued" and m.run_id != run_id and len(m.runs) == 2
     assert rt.jobs.dispatcher.sent[-1] == (job_id, STAGES[1], m.run_id)
     assert execute_stage(rt, job_id, STAGES[1], run_id).status == "stale"  # the old run's message

@@ -12,7 +12,7 @@ import torch
 from pipeline.job.layout import JobLayout
 from pipeline.job.markers import atomic_write_json
 from pipeline.splat.spz import export_spz, read_spz
-from service.artifacts import find_artifact, list_artifacts, zip_stream
+from service.jobs.artifacts import find_artifact, list_artifacts, zip_stream
 
 
 def test_the_spz_is_listed_after_export_and_zipped_as_is(tmp_path):

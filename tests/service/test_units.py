@@ -13,11 +13,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from service.manifest import overall_progress, stage_weights
-from service.store import JobStore
+from service.jobs.manifest import overall_progress, stage_weights
+from service.jobs.store import JobStore
+from service.jobs.uploads import UploadError, receive_upload
 from service.surveys.registry import resolve_under_roots
 from service.surveys.sets import ImageFile, group_images, list_images, set_hash
-from service.uploads import UploadError, receive_upload
 from worker.runner import error_code
 
 
@@ -160,7 +160,7 @@ def test_two_archives_are_refused(tmp_path: Path) -> None:
 
 
 def test_settings_require_keys_and_data_dir(monkeypatch) -> None:
-    from service.settings import load_settings
+    from service.core.settings import load_settings
 
     for k in list(os.environ):
         if k.startswith("DUALPHYS_"):
@@ -230,7 +230,7 @@ def test_client_options_are_the_pipelines_job_options():
     import dataclasses
 
     from pipeline.job.options import JobOptions
-    from service.options import CLIENT_OPTIONS, JobOptionsIn
+    from service.jobs.options import CLIENT_OPTIONS, JobOptionsIn
 
     spec = {f.name: f for f in dataclasses.fields(JobOptions)}
     assert set(JobOptionsIn.model_fields) == set(CLIENT_OPTIONS) <= set(spec)

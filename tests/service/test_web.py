@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from service.options import CLIENT_OPTIONS
+from service.jobs.options import CLIENT_OPTIONS
 from service.web.page import STATIC_DIR
 
 PAGES = ["/", "/jobs", "/jobs/j-anything", "/surveys"]

@@ -26,7 +26,8 @@ from svc_helpers import (
 )
 
 import pipeline.job.runner
-from service.store import new_job_id
+import worker.runner
+from service.jobs.store import new_job_id
 from service.webhooks.callback import CallbackRefused, check_callback_url, host_allowed
 from service.webhooks.deliver import deliver
 from service.webhooks.signing import SIGNATURE_HEADER, sign, verify
@@ -272,7 +273,7 @@ def hook_rt(tmp_path, unit_prefix, monkeypatch):
             raise RuntimeError(f"{stage} broke")
         return {"stage": stage}, False
 
-    monkeypatch.setattr(pipeline.job.runner, "run_stage", fake_run_stage)
+    monkeypatch.setattr(worker.runner, "run_stage", fake_run_stage)  # where the runner calls it
     runtime.failing = failing
     yield runtime
     runtime.close()

@@ -12,8 +12,8 @@ from fastapi.responses import FileResponse, StreamingResponse
 from service.api.deps import JobDep, JobsDep
 from service.api.errors import api_error
 from service.api.schemas.responses import ArtifactList, ArtifactOut, ErrorOut
-from service.artifacts import find_artifact, list_artifacts, media_type, zip_stream
-from service.previews import preview
+from service.jobs.artifacts import find_artifact, list_artifacts, media_type, zip_stream
+from service.jobs.previews import preview
 
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["artifacts"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 409, 416)}

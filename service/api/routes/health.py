@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse
 from service.api.deps import ServicesDep
 from service.api.errors import error_body
 from service.api.schemas.responses import HealthOut, ReadyOut
+from service.core.dispatch import CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE
 
 router = APIRouter(tags=["health"])
 
@@ -23,8 +24,6 @@ def health() -> HealthOut:
 def _workers(services) -> tuple[dict[str, int], list[str]]:
     """Live workers per queue, and a warning for each queue jobs need that nobody consumes. The API stays
     ready without workers (uploads are accepted and queued); the warnings say why nothing would run."""
-    from service.dispatch import CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE
-
     live = services.coord.workers()
     per_queue = {q: sum(q in qs for qs in live.values()) for q in (CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE)}
     needed = [CPU_QUEUE, SURVEY_QUEUE] + ([GPU_QUEUE] if services.settings.train_queue == GPU_QUEUE else [])

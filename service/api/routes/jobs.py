@@ -10,10 +10,10 @@ from service.api.deps import JobDep, JobsDep, OwnerDep, ServicesDep
 from service.api.errors import api_error
 from service.api.schemas.inputs import JobCreateOptions
 from service.api.schemas.responses import ErrorOut, JobList, JobOut, LogOut
-from service.dispatch import DispatchError
-from service.intake import UploadRequest
-from service.jobs import JobConflict, JobOps
-from service.uploads import UploadError
+from service.core.dispatch import DispatchError
+from service.jobs.intake import UploadRequest
+from service.jobs.ops import JobConflict, JobOps
+from service.jobs.uploads import UploadError
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 

@@ -8,7 +8,7 @@ from service.api.deps import OwnerDep, ServicesDep, SettingsDep, SurveysDep
 from service.api.errors import api_error
 from service.api.schemas.inputs import SurveyCreate
 from service.api.schemas.responses import ErrorOut, ScanQueued, SubmittedSetOut, SurveyList, SurveyOut
-from service.dispatch import DispatchError
+from service.core.dispatch import DispatchError
 from service.surveys.registry import Survey, SurveyError, SurveyNotFound, SurveyRegistry
 from service.webhooks.callback import CallbackRefused, check_callback_url
 

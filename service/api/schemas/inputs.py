@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.options import JobOptionsIn
+from service.jobs.options import JobOptionsIn
 from service.surveys.registry import SurveyOptions
 
 

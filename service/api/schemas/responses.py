@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
-from service.jobs import StatusView, pipeline_stages
-from service.manifest import Manifest
+from service.jobs.manifest import Manifest
+from service.jobs.ops import StatusView, pipeline_stages
 
 
 class ErrorDetail(BaseModel):

@@ -1,5 +1,5 @@
 """Sending stage tasks: one message per (job, stage, run). The API and the workers both send through this, each
-with its own Celery app (the API's producer from ``service.broker``, the worker's own app), handed in by
+with its own Celery app (the API's producer from ``service.core.broker``, the worker's own app), handed in by
 whoever builds the dispatcher (``service.compose``)."""
 
 from __future__ import annotations
@@ -9,6 +9,8 @@ from typing import Any, Protocol
 
 from kombu.exceptions import KombuError
 from redis.exceptions import RedisError
+
+from pipeline.job.table import stage as table_stage
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +42,6 @@ class Dispatcher:
     def queue_for(self, stage: str) -> str:
         """The stage table's queue (``pipeline.job.table``): training on this deployment's train queue (cpu or
         gpu), every other stage on the cpu queue."""
-        from pipeline.job.table import stage as table_stage
-
         return self.train_queue if table_stage(stage).queue == "train" else CPU_QUEUE
 
     def send_stage(self, job_id: str, stage: str, run_id: str) -> str:

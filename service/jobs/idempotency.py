@@ -17,8 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.job.markers import atomic_write_text
-
-from .coord import IDEMPOTENCY_TTL_S
+from service.core.coord import IDEMPOTENCY_TTL_S
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +34,7 @@ class IdempotencyIndex:
         self.ttl_s = ttl_s
 
     def _path(self, owner: str, key: str) -> Path:
-        # owner names are letters, digits, '-', '_' and '.' (service.settings); never '..' alone
+        # owner names are letters, digits, '-', '_' and '.' (service.core.settings); never '..' alone
         if not owner or owner in (".", "..") or "/" in owner:
             raise ValueError(f"unusable owner name {owner!r}")
         return self.root / owner / f"{hashlib.sha256(key.encode()).hexdigest()}.json"

@@ -3,9 +3,9 @@ stage on it with this deployment's limits (hostile archives, undecodable images 
 here), then create the job and queue its remaining stages.
 
 ``Idempotency-Key``: a repeat of a request (same archive bytes, same options) gets the first job back; the key is
-claimed in Redis while the first request uploads and recorded on disk (``service.idempotency``) once its job
-exists. Refusals are :class:`service.uploads.UploadError` (HTTP status, stable code, message); a broker that does
-not take the first stage is a :class:`service.dispatch.DispatchError` after the job was created (failed with
+claimed in Redis while the first request uploads and recorded on disk (``service.jobs.idempotency``) once its job
+exists. Refusals are :class:`service.jobs.uploads.UploadError` (HTTP status, stable code, message); a broker that does
+not take the first stage is a :class:`service.core.dispatch.DispatchError` after the job was created (failed with
 ``broker_unavailable``; a retry re-sends it). Whatever else goes wrong, nothing is left on disk.
 """
 
@@ -21,19 +21,23 @@ from pathlib import Path
 import anyio
 from pydantic import ValidationError
 
+from pipeline.ingest.archive import ArchiveError
+from pipeline.ingest.intake import IngestConfig, IngestError
 from pipeline.job.layout import JobLayout
+from pipeline.job.options import JobOptions, StageContext
+from pipeline.job.runner import run_stage
+from service.core.coord import Coordinator
+from service.core.dispatch import DispatchError
+from service.core.settings import Settings
+from service.webhooks.callback import CallbackRefused, check_callback_url
 
-from .coord import Coordinator
-from .dispatch import DispatchError
 from .idempotency import IdempotencyIndex
-from .jobs import JobOps
 from .manifest import Manifest
+from .ops import JobOps
 from .options import JobOptionsIn
 from .redact import redact_paths
-from .settings import Settings
 from .store import JobNotFound, new_job_id
 from .uploads import UploadError, check_declared_length, receive_upload
-from .webhooks.callback import CallbackRefused, check_callback_url
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +157,7 @@ class UploadIntake:
 
     def _claim_key(self, owner: str, key: str, job_id: str) -> str | None:
         """None when ``key`` is new (claimed for ``job_id``), else what holds it: a job id, or ``pending:<id>``.
-        The record on disk is asked first: it survives a Redis that lost its data (service.idempotency)."""
+        The record on disk is asked first: it survives a Redis that lost its data (service.jobs.idempotency)."""
         rec = self.idempotency.lookup(owner, key)
         if rec is not None:
             return rec.job_id
@@ -166,11 +170,6 @@ class UploadIntake:
     def _ingest(self, job_dir: Path, opts: dict) -> tuple[dict, float]:
         """The pipeline's ingest stage (``pipeline.job.runner.run_stage``) with this deployment's limits; its completion
         marker makes the worker skip it. Refusals become UploadError."""
-        from pipeline.ingest.archive import ArchiveError
-        from pipeline.ingest.intake import IngestConfig, IngestError
-        from pipeline.job.options import JobOptions, StageContext
-        from pipeline.job.runner import run_stage
-
         s = self.settings
         t0 = time.time()
         ctx = StageContext(ingest=IngestConfig(min_images=s.min_images, limits=s.archive_limits()))

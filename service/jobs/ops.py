@@ -11,11 +11,16 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .coord import Coordinator
-from .dispatch import Dispatcher, DispatchError
-from .manifest import TERMINAL_STATES, JobError, Manifest, RunRecord, StageRecord, WebhookDelivery
+from pipeline.job.markers import atomic_write_json
+from pipeline.job.options import JobOptions
+from pipeline.job.runner import first_unfinished
+from pipeline.job.table import STAGES
+from service.core.coord import Coordinator
+from service.core.dispatch import Dispatcher, DispatchError
+from service.webhooks.events import plan_event
+
+from .manifest import TERMINAL_STATES, JobError, Manifest, RunRecord, StageRecord, WebhookDelivery, overall_progress
 from .store import JobNotFound, JobStore
-from .webhooks.events import plan_event
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +38,6 @@ def new_run_id() -> str:
 
 
 def pipeline_stages() -> tuple[str, ...]:
-    from pipeline.job.table import STAGES
-
     return tuple(STAGES)
 
 
@@ -61,8 +64,6 @@ class JobOps:
                ingest: dict | None = None, ingest_seconds: float | None = None,
                callback_url: str | None = None) -> Manifest:
         """Write job.json and the manifest of a job whose folder exists, then queue its first unfinished stage."""
-        from pipeline.job.markers import atomic_write_json
-
         now = time.time()
         stages = pipeline_stages()
         run_id = new_run_id()
@@ -90,8 +91,6 @@ class JobOps:
         return self.dispatch(job_id, run_id, first)
 
     def _done_progress(self, m: Manifest) -> float:
-        from .manifest import overall_progress
-
         stages = pipeline_stages()
         return overall_progress(stages, {s for s in stages if m.stage(s).status == "done"}, None, 0.0)
 
@@ -221,9 +220,6 @@ class JobOps:
             run.outcome, run.finished_at = "cancelled", time.time()
 
     def retry(self, job_id: str, owner: str) -> Manifest:
-        from pipeline.job.options import JobOptions
-        from pipeline.job.runner import first_unfinished
-
         with self.coord.manifest_mutex(job_id):
             m = self.get(job_id, owner)
             if m.state not in ("failed", "cancelled"):

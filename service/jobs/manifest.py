@@ -14,6 +14,8 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
+from pipeline.job.table import BY_NAME
+
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
 StageStatus = Literal["pending", "running", "done", "failed", "cancelled"]
 TERMINAL_STATES: frozenset[str] = frozenset({"done", "failed", "cancelled"})
@@ -124,8 +126,6 @@ class Manifest(BaseModel):
 def stage_weights(stages: tuple[str, ...]) -> dict[str, float]:
     """Each stage's share of the 0-100 progress bar: its weight in the stage table (``pipeline.job.table``),
     normalised over ``stages``."""
-    from pipeline.job.table import BY_NAME
-
     w = {s: BY_NAME[s].weight if s in BY_NAME else DEFAULT_STAGE_WEIGHT for s in stages}
     total = sum(w.values()) or 1.0
     return {s: 100.0 * v / total for s, v in w.items()}

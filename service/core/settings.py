@@ -7,6 +7,7 @@ in the environment, e.g. ``DUALPHYS_API_KEYS='{"<key>": "alice"}'``, ``DUALPHYS_
 
 from __future__ import annotations
 
+import hmac
 from pathlib import Path
 
 from pydantic import Field, SecretStr, field_validator
@@ -133,8 +134,6 @@ class Settings(BaseSettings):
 
     def owner_of(self, key: str) -> str | None:
         """The owner of an API key (constant-time comparison against every configured key)."""
-        import hmac
-
         found = None
         for k, owner in self.api_keys.items():
             if hmac.compare_digest(k.get_secret_value().encode(), key.encode()):

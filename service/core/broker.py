@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from celery import Celery
 from kombu import Exchange, Queue
 
 from .dispatch import CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE
@@ -45,12 +46,10 @@ def broker_config(settings: Settings) -> dict[str, Any]:
     }
 
 
-def producer(settings: Settings):
+def producer(settings: Settings) -> Celery:
     """A Celery app that only sends tasks (the API's): the message contract, no task modules, no worker settings.
 
     Building it connects to nothing; the first ``send_task`` does."""
-    from celery import Celery
-
     app = Celery(APP_NAME, set_as_current=False)
     app.conf.update(broker_config(settings))
     return app

@@ -12,7 +12,7 @@ import logging
 from pathlib import Path
 
 from pipeline.job.layout import JobLayout
-from pipeline.scene.images import list_images
+from pipeline.scene.images import list_images, read_image, resize_area, write_image
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +41,6 @@ def preview(job_dir: Path, kind: str, stem: str) -> Path | None:
     out = layout.previews / kind / f"{stem}.jpg"
     if out.is_file() and out.stat().st_mtime >= src.stat().st_mtime:
         return out
-    from pipeline.scene.images import read_image, resize_area, write_image
-
     img = read_image(src)
     scale = MAX_SIDE / max(img.shape[:2])
     if scale < 1.0:

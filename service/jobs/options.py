@@ -16,7 +16,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model, field_validator
 
-from pipeline.job.options import JobOptions
+from pipeline.config import TRAIN_PRESETS
+from pipeline.job.options import COLOUR_SPACES, JOB_MODES, RESTORE_FORMATS, JobOptions
 
 # What a client may set (``source`` is the upload or the survey's set; ``ground_truth`` is for local runs only),
 # in the order the API documents them, with the API's bounds.
@@ -28,26 +29,18 @@ CLIENT_OPTIONS: dict[str, dict[str, Any]] = {
 
 
 def known_presets() -> list[str]:
-    from pipeline.config import TRAIN_PRESETS
-
     return sorted(TRAIN_PRESETS)
 
 
 def known_modes() -> list[str]:
-    from pipeline.job.options import JOB_MODES
-
     return list(JOB_MODES)
 
 
 def known_colour_spaces() -> list[str]:
-    from pipeline.job.options import COLOUR_SPACES
-
     return list(COLOUR_SPACES)
 
 
 def known_restore_formats() -> list[str]:
-    from pipeline.job.options import RESTORE_FORMATS
-
     return list(RESTORE_FORMATS)
 
 

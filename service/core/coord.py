@@ -10,6 +10,7 @@ manifest read-modify-write), ``job:<id>:cancel``, ``job:<id>:progress`` (hash), 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import threading
 import time
@@ -205,8 +206,6 @@ class Coordinator:
 
     # ---- workers (worker.heartbeat)
     def announce_worker(self, hostname: str, queues: list[str], pid: int, ttl_s: float) -> None:
-        import json
-
         self.redis.set(self.key("worker", hostname), json.dumps({"queues": queues, "pid": pid, "at": time.time()}),
                        ex=max(1, int(ttl_s)))
 
@@ -215,8 +214,6 @@ class Coordinator:
 
     def workers(self) -> dict[str, list[str]]:
         """Live workers (hostname -> queues they consume), from their heartbeats."""
-        import json
-
         out: dict[str, list[str]] = {}
         for k in self.redis.scan_iter(match=self.key("worker", "*"), count=100):
             raw = self.redis.get(k)
