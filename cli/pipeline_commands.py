@@ -6,7 +6,6 @@ these runs, after the thread settings are in place; the client install never loa
 Exit codes: 0 success, 1 a pipeline error the user can act on (message on stderr), 2 flags that contradict.
 """
 
-# ruff: noqa: T201  (printing is these commands' output; pyproject's per-file ignore names cli/main.py only)
 
 from __future__ import annotations
 
