@@ -34,13 +34,19 @@ import torch
 
 from pipeline.config import TrainConfig, rescheduled, to_dict
 from pipeline.job.layout import SELECTION_NAME
+from pipeline.job.markers import atomic_write_json, config_hash
 from pipeline.medium.drift import photo_drift
 from pipeline.medium.estimate import MediumEstimate, gather_observations
 from pipeline.medium.measure import measure_observed
+from pipeline.ops.metrics import pooled_psnr
 from pipeline.scene.colour import linear_to_srgb
 from pipeline.scene.exposure import neutral
 from pipeline.scene.records import Scene, View, scaled_view, view_ranges
+from pipeline.train.budget import scene_budget
 from pipeline.train.quality import box_mean
+from pipeline.train.setup import prepare_images
+from pipeline.train.targets import take
+from pipeline.train.trainer import Trainer, TrainingCancelled
 
 log = logging.getLogger(__name__)
 
@@ -331,8 +337,6 @@ def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndar
     ``photographed``: the prediction as the camera recorded it (the survey's fall-off put back where the mode's
     training divided it out, :meth:`pipeline.train.exposure.ViewExposure.photographed`), so every mode is scored
     against the photos as they are."""
-    from pipeline.ops.metrics import pooled_psnr
-
     att, bs = [], []
     for out, m in zip(outputs, masks, strict=True):
         if out.A is not None and out.B is not None:
@@ -366,8 +370,6 @@ def _share(masks: Sequence[np.ndarray]) -> float:
 
 
 def _steps(trainer, n: int, should_cancel: Callable[[], bool]) -> None:
-    from pipeline.train.trainer import TrainingCancelled
-
     for _ in range(n):
         if should_cancel():
             raise TrainingCancelled(trainer.iteration)
@@ -380,10 +382,6 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
               device: str = "cpu") -> Selection:
     """Probe ``modes`` on the training views of ``scene`` (``images[i]`` belongs to ``scene.views[i]``) and
     decide. ``base`` supplies the seed, backend and medium settings (the water decision applied)."""
-    from pipeline.train.setup import prepare_images
-    from pipeline.train.targets import take
-    from pipeline.train.trainer import Trainer
-
     cfg = cfg or ProbeConfig()
     report = on_progress or (lambda f, m: None)
     t_start = time.perf_counter()
@@ -469,9 +467,6 @@ def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: Tra
     """``--mode auto`` in a job: probe, decide, scale the budget to the scene, write ``out_dir/selection.json``
     and return its content. A selection.json written for the same inputs is reused (a resumed training job
     does not probe again)."""
-    from pipeline.job.markers import atomic_write_json, config_hash
-    from pipeline.train.budget import scene_budget
-
     cfg = cfg or ProbeConfig()
     key = config_hash({"base": to_dict(base), "probe": dataclasses.asdict(cfg),
                        "views": [v.name for v in scene.views], "water": water})
