@@ -22,12 +22,25 @@ Reading of the paper's rows (its Table 2 has a "Model" and a "Loss" section unde
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from pipeline.config import SynthConfig, scaled_train_config, to_dict
+from pipeline.job.markers import atomic_write_json
+from pipeline.ops.metrics import mean_ssim, pooled_psnr
+from pipeline.scene.images import read_image
+from pipeline.scene.loader import load_scene
+from pipeline.scene.split import split_views
+from pipeline.synth.procedural import generate_scene
+from pipeline.synth.water import TRUE_WATER_FILE
+from pipeline.train.resolve import medium_with_water
+from pipeline.train.trainer import Trainer
+from pipeline.water import classify
 
 log = logging.getLogger(__name__)
 
@@ -130,9 +143,6 @@ def select_rows(cfg: AblationConfig) -> list[AblationRow]:
 def row_config(row: AblationRow, cfg: AblationConfig, water: dict):
     """The TrainConfig of one row: the scaled schedule, the row's mode and switches, the controller's settings
     when WAT is on."""
-    from pipeline.config import scaled_train_config
-    from pipeline.train.resolve import medium_with_water
-
     tc = scaled_train_config(cfg.iterations, checkpoint_every=0, max_gaussians=100_000)
     m = dataclasses.replace(tc.medium, rgb_attenuation=row.rgb_attenuation,
                             multiscale_scattering=row.multiscale_scattering, water_adaptation=row.water_adaptation,
@@ -143,7 +153,6 @@ def row_config(row: AblationRow, cfg: AblationConfig, water: dict):
 
 
 def _score_row(trainer, views, photos, clean) -> dict[str, float]:
-    from pipeline.ops.metrics import mean_ssim, pooled_psnr
     outs = [trainer.outputs(v) for v in views]
     with_water = list(zip([o.I for o in outs], photos, strict=True))
     restored = list(zip([o.J for o in outs], clean, strict=True))
@@ -155,18 +164,6 @@ def run_ablation(out: str | Path, cfg: AblationConfig,
                  on_row: Callable[[RowResult], None] | None = None) -> dict[str, Any]:
     """Generate the scene under ``out/scene`` (reused when present), train every row, write
     ``out/ablation.json`` and return its content."""
-    import json
-
-    from pipeline.config import SynthConfig, to_dict
-    from pipeline.job.markers import atomic_write_json
-    from pipeline.scene.images import read_image
-    from pipeline.scene.loader import load_scene
-    from pipeline.scene.split import split_views
-    from pipeline.synth.procedural import generate_scene
-    from pipeline.synth.water import TRUE_WATER_FILE
-    from pipeline.train.trainer import Trainer
-    from pipeline.water import classify
-
     out = Path(out)
     rows = select_rows(cfg)
     synth = SynthConfig(views=cfg.views, width=cfg.width, height=cfg.height, preset=cfg.water,  # type: ignore[arg-type]

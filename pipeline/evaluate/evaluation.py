@@ -31,6 +31,7 @@ import torch
 
 from pipeline.evaluate.perceptual import LPIPSSetting, lpips_from_env, mean_lpips
 from pipeline.job.layout import JobLayout
+from pipeline.job.markers import read_marker
 from pipeline.medium.fall_off import as_photographed
 from pipeline.ops.metrics import (
     coefficient_error,
@@ -39,9 +40,15 @@ from pipeline.ops.metrics import (
     pooled_psnr,
     scale_aligned_depth_error,
 )
+from pipeline.scene.align import align_to_reference, fit_similarity, view_in_estimated_frame
+from pipeline.scene.images import write_image
+from pipeline.scene.loader import load_scene, load_view_image
 from pipeline.scene.records import View, scaled_view
-from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL
-from pipeline.train.model import TrainedModel
+from pipeline.scene.split import split_views
+from pipeline.synth.ground_truth import FAR_DEPTH_M, SEEN_DEPTH_TOL, load_ground_truth
+from pipeline.train.checkpoint import load_checkpoint
+from pipeline.train.model import TrainedModel, model_from_state
+from pipeline.train.photo_exposure import photo_fall_off, photo_gains
 from pipeline.train.render import ViewOutputs, displayed, render_outputs
 
 log = logging.getLogger(__name__)
@@ -116,8 +123,6 @@ def speed_vs_error(history: Sequence[dict], final_iteration: int, views: Sequenc
 
 def stage_timings(job: Path, stages: Sequence[str]) -> dict[str, float | None]:
     """Wall seconds of each finished stage from its completion marker (None when it has not run)."""
-    from pipeline.job.markers import read_marker
-
     out: dict[str, float | None] = {}
     for s in stages:
         m = read_marker(job, s)
@@ -177,10 +182,6 @@ def seen_scores(names: Sequence[str], restored: list[tuple[np.ndarray, np.ndarra
 def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str], downscale: int, gt_root: Path,
                         lp: LPIPSSetting, backend: str = "auto") -> dict[str, Any]:
     """Restored J, coefficients and depth against a generated scene's truth (see the module docstring)."""
-    from pipeline.scene.align import align_to_reference, fit_similarity, view_in_estimated_frame
-    from pipeline.scene.loader import load_scene
-    from pipeline.synth.ground_truth import load_ground_truth
-
     layout = JobLayout(job)
     job_scene = load_scene(layout.scene)
     gt = load_ground_truth(gt_root, [v.name for v in job_scene.views])
@@ -227,8 +228,6 @@ def restoration_metrics(job: Path, model: TrainedModel, test_names: Sequence[str
 def save_renders(rendered: Sequence[Rendered], out: Path) -> None:
     """Write each render's with-water image and restored J as ``out/{with_water,restored}/<stem>.png`` (the
     report's side-by-side at the true cameras)."""
-    from pipeline.scene.images import write_image
-
     for sub in ("with_water", "restored"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     for r in rendered:
@@ -255,12 +254,6 @@ def evaluate_job(job: str | Path, ground_truth: str | Path | None = None, stages
 
     ``stages`` names the stages whose marker timings to collect (those before this one).
     """
-    from pipeline.scene.loader import load_scene, load_view_image
-    from pipeline.scene.split import split_views
-    from pipeline.train.checkpoint import load_checkpoint
-    from pipeline.train.model import model_from_state
-    from pipeline.train.photo_exposure import photo_fall_off, photo_gains
-
     t0 = time.perf_counter()
     job = Path(job)
     layout = JobLayout(job)

@@ -15,7 +15,7 @@ from pipeline.scene.images import PNG_COMPRESSION_LEVEL
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # lazy: the optional `report` extra; importing this module costs nothing
 
     matplotlib.use("Agg", force=True)  # no display: workers and CI have none
     import matplotlib.pyplot as plt
@@ -49,7 +49,7 @@ def speed_vs_error_png(points: Sequence[dict], title: str = "speed against error
 def image_png(img: np.ndarray, cmap: str | None = None, vmin: float | None = None,
               vmax: float | None = None) -> bytes:
     """An [H, W, 3] image in [0, 1] as PNG, or an [H, W] map through ``cmap`` over [vmin, vmax]. -> PNG"""
-    import matplotlib.image as mpimg
+    import matplotlib.image as mpimg  # lazy: the optional `report` extra
 
     if img.ndim == 3:
         img = np.clip(img, 0.0, 1.0)

@@ -19,10 +19,17 @@ from typing import Any
 import numpy as np
 
 from pipeline.evaluate.evaluation import json_safe, stage_timings
+from pipeline.evaluate.plots import image_png, speed_vs_error_png
+from pipeline.export.report_html import render_html
 from pipeline.job.layout import RENDER_FOLDERS, JobLayout
-from pipeline.job.markers import atomic_write_json, atomic_write_text
+from pipeline.job.markers import atomic_write_json, atomic_write_text, read_marker
+from pipeline.job.table import STAGES
 from pipeline.ops.metrics import per_metre
+from pipeline.scene.images import read_image, resize_area_to
+from pipeline.scene.loader import load_scene, load_view_image
 from pipeline.scene.records import scaled_view
+from pipeline.scene.split import split_views
+from pipeline.synth.ground_truth import load_ground_truth
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +106,6 @@ def quality_of(train: dict) -> dict[str, Any] | None:
 def build_report(job: str | Path, export_s: float | None = None) -> dict[str, Any]:
     """The report.json content of a job whose evaluate stage has run (``export_s``: the export stage's seconds
     so far, as its marker is not written yet)."""
-    from pipeline.job.table import STAGES
-
     job = Path(job)
     layout = JobLayout(job)
     ev = _read_json(layout.evaluate)
@@ -184,8 +189,6 @@ def input_summary(job: Path, options: dict) -> dict[str, Any]:
 def sfm_summary(job: Path) -> dict[str, Any] | None:
     """The SfM stage's summary from its completion marker: registered / total images, mean reprojection error,
     points, matcher (None when the stage has not run)."""
-    from pipeline.job.markers import read_marker
-
     marker = read_marker(job, "sfm")
     result = (marker or {}).get("result") or {}
     return {k: result.get(k) for k in SFM_FIELDS} if result else None
@@ -211,7 +214,7 @@ def relative_paths(value: Any, job: Path) -> Any:
 def validate_report(report: dict) -> None:
     """Raise ``jsonschema.ValidationError`` when ``report`` does not follow the schema (jsonschema is a dev
     dependency: the pipeline itself never needs it)."""
-    import jsonschema
+    import jsonschema  # lazy: a dev dependency (the pipeline never validates)
 
     jsonschema.validate(report, json.loads(SCHEMA_FILE.read_text()))
 
@@ -235,9 +238,6 @@ CROP = 224  # px: the full-resolution crop shown beside them
 def original_pictures(job: Path, report: dict) -> list[tuple[str, list[tuple[str, bytes]]]]:
     """Photo | restored at a useful size, the confidence map, and a CROP x CROP crop of both at full resolution
     (centred on the photo's most detailed restored area), for the held-out photos first."""
-    from pipeline.evaluate.plots import image_png
-    from pipeline.scene.images import read_image, resize_area_to
-
     layout = JobLayout(job)
     rest = report.get("restore") or {}
     done = [v["name"] for v in rest.get("views", [])]
@@ -293,12 +293,6 @@ def _crop_corner(photo: np.ndarray, conf: np.ndarray | None, size: int) -> tuple
 
 def collect_pictures(job: Path, report: dict) -> Pictures:
     """Side-by-side with-water / restored / ground truth per held-out view and its A / B / depth maps."""
-    from pipeline.evaluate.plots import image_png, speed_vs_error_png
-    from pipeline.scene.images import read_image
-    from pipeline.scene.loader import load_scene, load_view_image
-    from pipeline.scene.split import split_views
-    from pipeline.synth.ground_truth import load_ground_truth
-
     layout = JobLayout(job)
     out = layout.render_folder
     names = report["metrics"]["test"]["views"][:MAX_VIEWS_SHOWN]
@@ -348,8 +342,6 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
 def write_report(job: str | Path, out: str | Path | None = None, export_s: float | None = None) -> list[Path]:
     """Write report.json, report.html and the curve's PNG into ``out`` (default: the job's output folder, where
     they have the names of ``JobLayout``); returns the paths written."""
-    from pipeline.export.report_html import render_html
-
     t0 = time.perf_counter()
     job = Path(job)
     layout = JobLayout(job)

@@ -11,6 +11,8 @@ import math
 from html import escape
 from typing import TYPE_CHECKING, Any
 
+from pipeline.restore.dewater import CONFIDENCE_ERROR
+
 if TYPE_CHECKING:
     from pipeline.export.report import Pictures
 
@@ -61,8 +63,6 @@ def _figures(cells: list[tuple[str, bytes]], wide: int = 0) -> str:
 
 def _restored_photos(r: dict, pics: Pictures) -> str:
     """Your photos, de-watered: what the restore stage did, its scores against ground truth, the pictures."""
-    from pipeline.restore.dewater import CONFIDENCE_ERROR
-
     rs = r.get("restore")
     html = "<h2>Your photos, de-watered</h2>"
     if rs is None:

@@ -9,10 +9,20 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.export.views import export_views
 from pipeline.job.layout import RENDER_FOLDERS, JobLayout
+from pipeline.restore.views import (
+    NOTHING_TO_RESTORE,
+    job_water_sigma,
+    lens_cameras,
+    render_for_photo,
+    restore_photo,
+)
 from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
 from pipeline.scene.records import View
-from pipeline.train.model import training_views
+from pipeline.train.checkpoint import load_checkpoint
+from pipeline.train.model import model_from_state, training_views
+from pipeline.train.photo_exposure import photo_fall_off, photo_gains, survey_exposure
 
 log = logging.getLogger(__name__)
 
@@ -66,9 +76,6 @@ def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "a
     cameras on a path through them; with ``"photos"`` in ``what``, the chosen views' input photos de-watered at
     full resolution into ``out/restored/`` and ``out/confidence/`` (as the restore stage does, with this gain cap
     and format; novel cameras have no photo). Returns counts."""
-    from pipeline.export.views import export_views
-    from pipeline.train.checkpoint import load_checkpoint
-
     job, out = Path(job), Path(out)
     photos = "photos" in what
     what = [w for w in what if w != "photos"]
@@ -105,16 +112,6 @@ def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "a
 
 def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, max_gain: float, fmt: str) -> int:
     """The input photos of ``views`` de-watered into ``out/restored`` and ``out/confidence``; their count."""
-    from pipeline.restore.views import (
-        NOTHING_TO_RESTORE,
-        job_water_sigma,
-        lens_cameras,
-        render_for_photo,
-        restore_photo,
-    )
-    from pipeline.train.model import model_from_state
-    from pipeline.train.photo_exposure import photo_fall_off, photo_gains, survey_exposure
-
     model = model_from_state(state)
     gains = photo_gains(job)  # each photo's exposure, as the restore stage removed it
     if model.medium is None:

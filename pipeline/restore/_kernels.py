@@ -1,7 +1,9 @@
 """numba kernels of the restorer (the hot ops). Each has a slow numpy twin next to its caller; tests compare.
 
-Imported lazily by the modules that use them; kernels compile on first call or load from numba's on-disk cache
-(``cache=True``, keyed on this file). Parallel loops run on numba's OpenMP/workqueue pool, never TBB
+Imported at the top of the modules that always run them (``lens``, ``sample``, ``frame``) and lazily by ``dewater``
+and ``guided``, whose numpy twins and constants are read without numba (the report, ``medium``,
+``consistency_truth``). Kernels compile on first call or load from numba's on-disk cache (``cache=True``, keyed
+on this file). Parallel loops run on numba's OpenMP/workqueue pool, never TBB
 (``pipeline.splat._cpu_backend.pin_threading_layer``).
 """
 

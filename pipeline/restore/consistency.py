@@ -22,6 +22,9 @@ import numpy as np
 from pipeline.evaluate.consistency import colour_consistency
 from pipeline.job.layout import JobLayout
 from pipeline.medium.estimate import Observations
+from pipeline.restore.views import lens_cameras
+from pipeline.scene.images import read_image
+from pipeline.scene.loader import load_scene
 from pipeline.scene.records import LensCamera, Sightings, View
 
 log = logging.getLogger(__name__)
@@ -46,10 +49,6 @@ def restored_consistency(job: Path, files: dict[str, str]) -> dict:
     """The score of a job's restored photos (``files``: view name -> its file in ``restored/``) against its
     photos at the sparse model's sightings; the dict of :func:`~pipeline.evaluate.consistency.colour_consistency`
     plus ``geometry`` (how sightings and photos were matched) and ``n_views``."""
-    from pipeline.restore.views import lens_cameras
-    from pipeline.scene.images import read_image
-    from pipeline.scene.loader import load_scene
-
     layout = JobLayout(job)
     scene = load_scene(layout.scene)
     lenses = lens_cameras(layout.scene)

@@ -10,6 +10,7 @@ PINHOLE geometry of ``sparse_gt`` (or ``pinhole/`` for a distorted scene), with 
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from pipeline.medium.estimate import Observations, gather_observations
 from pipeline.restore.dewater import dewater_reference
 from pipeline.restore.records import MediumMaps
 from pipeline.scene.images import read_image
+from pipeline.scene.loader import load_scene
 from pipeline.scene.records import Scene, View, ray_length_factor
 from pipeline.synth.ground_truth import FAR_DEPTH_M, PINHOLE_DIR
 from pipeline.synth.water import TRUE_WATER_FILE
@@ -47,10 +49,6 @@ def scene_consistency(root: str | Path, beta_scales: Sequence[float] = (1.0, 0.5
     """The score of the photos of generated scene ``root`` and of each truth restoration (keyed ``"x<scale>"``,
     e.g. ``"x1"``, ``"x0.5"``; gain cap ``max_gain``), every one against the photos; ``"photo"`` scores the
     photos against themselves (share 1)."""
-    import json
-
-    from pipeline.scene.loader import load_scene
-
     root = Path(root)
     water = json.loads((root / TRUE_WATER_FILE).read_text())
     geo = root / PINHOLE_DIR if (root / PINHOLE_DIR).is_dir() else root

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.restore.guided import _box_mean_reference
 from pipeline.restore.records import MediumMaps
 from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
 
@@ -96,6 +97,7 @@ def dewater(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray
         (:func:`local_misfit`; used with a prior): its excess over ``noise2``, over A_eff², enters the expected
         error. None: 0.
     Returns (J [n, W, 3] uint8 or uint16, confidence [n, W] float32 in [0, 1], clipped pixel count)."""
+    # lazy: numba (and torch) load at the first kernel call; the numpy twins and constants here need neither
     from pipeline.restore._kernels import dewater as kernel
 
     _check(max_gain, space)
@@ -134,6 +136,7 @@ def local_misfit(img: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.nd
     A·(what the model lacks); where it is large over a neighbourhood, the model's J, depth or water is wrong
     there, and the restored pixel, which takes its depth and water from the model whatever its share, is
     wrong too: on held-out photos that is most of the error the per-photo terms could not place."""
+    # lazy: numba (and torch) load at the first kernel call; the numpy twins and constants here need neither
     from pipeline.restore._kernels import box_mean, misfit_terms, misfit_upsample
 
     if scale is None:
@@ -163,8 +166,6 @@ def local_misfit_reference(img: np.ndarray, r: np.ndarray, surface: np.ndarray, 
                            out_rows: tuple[int, int] | None = None) -> np.ndarray:
     """Slow twin of :func:`local_misfit` (numpy float64, each box mean and the interpolation by explicit
     loops). img float [n, W, 3] in [0, 1]. Returns [b − a, W, 3]."""
-    from pipeline.restore.guided import _box_mean_reference
-
     q = max(1, int(step))
     first = (-int(row0)) % q
     kA, kB = (np.asarray(k, np.float64)[first::q, ::q] if np.ndim(k) == 3 else k for k in (medium.k_A, medium.k_B))

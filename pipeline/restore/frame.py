@@ -25,6 +25,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from pipeline.medium.fall_off import log_fall_off_at
+from pipeline.restore._kernels import luminance
 from pipeline.restore.dewater import detail_covariance, dewater, local_misfit, noise_and_detail, prior_weights
 from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.guided import (
@@ -222,8 +223,6 @@ class FrameRestorer:
         """What the physics needs of rows [y0, y1) besides the photo (``rows``: its rows [e0, e0 + len(rows))):
         (the scale of the stored values, range r [n, W] float32, surface [n, W] bool, k_A, k_B, the prior
         [n, W, 3] or None, the reach weight [n, W] of pixels off the surface)."""
-        from pipeline.restore._kernels import luminance
-
         e1 = e0 + rows.shape[0]
         scale = 1.0 / np.iinfo(rows.dtype).max if np.issubdtype(rows.dtype, np.integer) else 1.0
         xn, yn = self.grid.rays(e0, e1)

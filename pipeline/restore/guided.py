@@ -62,6 +62,7 @@ def fill_invalid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
 def guided_filter(guide: np.ndarray, src: np.ndarray, radius: int, eps: float) -> np.ndarray:
     """He's guided filter with a grey guide: guide, src [H, W] → [H, W] float32. Windows are (2r+1)² clipped to
     the image (means over the pixels inside). O(1) per pixel (numba running sums)."""
+    # lazy: numba (and torch) load at the first kernel call; the numpy twins and constants here need neither
     from pipeline.restore._kernels import box_mean, guided_apply, guided_coeffs, guided_stats
 
     g = np.ascontiguousarray(guide, np.float32)
@@ -76,6 +77,7 @@ def fast_guided_filter(guide: np.ndarray, src: np.ndarray, radius: int, eps: flo
     """The fast guided filter: :func:`guided_filter` on s×s block means with radius max(1, round(radius / s)),
     the coefficients interpolated back to full resolution. guide, src [H, W] → [H, W] float32.
     s = 1 equals :func:`guided_filter` (up to float rounding)."""
+    # lazy: numba (and torch) load at the first kernel call; the numpy twins and constants here need neither
     from pipeline.restore._kernels import block_mean, box_mean, guided_coeffs, guided_stats, upsample_apply
 
     g = np.ascontiguousarray(guide, np.float32)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.restore._kernels import sample_bilinear
 from pipeline.scene.records import Camera
 
 
@@ -12,8 +13,6 @@ def sample_maps(maps: np.ndarray, xn: np.ndarray, yn: np.ndarray, camera: Camera
 
     Bilinear, pixel-centre convention (u = fx·xn + cx; map pixel (i, j) sits at (j + 0.5, i + 0.5)), clamped to
     the edge. Returns (values [n, W, C] float32, inside [n, W] bool: the ray lands inside the render image)."""
-    from pipeline.restore._kernels import sample_bilinear
-
     return sample_bilinear(np.ascontiguousarray(maps, dtype=np.float32), np.ascontiguousarray(xn, np.float32),
                            np.ascontiguousarray(yn, np.float32), float(camera.fx), float(camera.fy),
                            float(camera.cx), float(camera.cy))

@@ -4,10 +4,31 @@ geometry -> ``JobLayout.restored`` and ``JobLayout.confidence``, with what happe
 
 from __future__ import annotations
 
+import logging
+import shutil
+import time
 from pathlib import Path
 
 from pipeline.job.layout import JobLayout
-from pipeline.job.options import JobOptions, StageContext
+from pipeline.job.markers import atomic_write_json, read_marker
+from pipeline.job.options import JobCancelled, JobOptions, StageContext
+from pipeline.restore.consistency import restored_consistency
+from pipeline.restore.truth import score_restored
+from pipeline.restore.views import (
+    NOTHING_TO_RESTORE,
+    job_water_sigma,
+    lens_cameras,
+    render_for_photo,
+    restore_photo,
+)
+from pipeline.scene.images import list_images
+from pipeline.synth.ground_truth import find_ground_truth
+from pipeline.train.checkpoint import load_checkpoint
+from pipeline.train.model import model_from_state, training_views
+from pipeline.train.photo_exposure import photo_fall_off, photo_gains, survey_exposure
+from pipeline.train.render import displayed
+
+log = logging.getLogger(__name__)
 
 
 def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
@@ -16,27 +37,6 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     are scored without truth, by how well the same seabed keeps its colour across distances
     (:mod:`pipeline.restore.consistency`); with ground truth (a generated scene) also against the truth at full
     resolution (:mod:`pipeline.restore.truth`)."""
-    import logging
-    import shutil
-    import time
-
-    from pipeline.job.markers import atomic_write_json
-    from pipeline.job.options import JobCancelled
-    from pipeline.restore.views import (
-        NOTHING_TO_RESTORE,
-        job_water_sigma,
-        lens_cameras,
-        render_for_photo,
-        restore_photo,
-    )
-    from pipeline.scene.images import list_images
-    from pipeline.synth.ground_truth import find_ground_truth
-    from pipeline.train.checkpoint import load_checkpoint
-    from pipeline.train.model import model_from_state
-    from pipeline.train.photo_exposure import photo_fall_off, photo_gains, survey_exposure
-    from pipeline.train.render import displayed
-
-    log = logging.getLogger(__name__)
     layout = JobLayout(job)
     for folder in (layout.restored, layout.confidence):  # a re-run never mixes old and new photos
         shutil.rmtree(folder, ignore_errors=True)
@@ -46,8 +46,6 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         res = {"mode": model.mode, "restored": 0, "note": NOTHING_TO_RESTORE, "views": []}
         atomic_write_json(layout.restore_result, res)
         return res
-    from pipeline.train.model import training_views
-
     views = training_views(job, state)
     sigma = job_water_sigma(job)
     lenses = lens_cameras(layout.scene)
@@ -80,12 +78,8 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
            "views": per_view,
            "not_restored": [{"name": n, "reason": split.get(n, "SfM did not register it (no pose)")}
                             for n in sorted(photos - registered)]}
-    from pipeline.restore.consistency import restored_consistency
-
     res["consistency"] = restored_consistency(job, {v["name"]: v["file"] for v in per_view})  # no truth needed
     if gt is not None:
-        from pipeline.restore.truth import score_restored
-
         res["truth"] = score_restored(job, gt, views, lenses, {v["name"]: v["file"] for v in per_view}, renders)
     atomic_write_json(layout.restore_result, res)
     log.info("restored %d photos in %.1f s", len(per_view), res["seconds"])
@@ -95,8 +89,6 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 def _split_models(job: Path) -> dict[str, str]:
     """Image name → why it has no pose, for the images SfM placed in a model other than the one trained (a survey
     that broke into several models: ``SfmSummary.other_models``)."""
-    from pipeline.job.markers import read_marker
-
     result = ((read_marker(job, "sfm") or {}).get("result") or {})
     return {name: f"in SfM's separate model {m['index']} ({m['registered']} images); only the largest model was "
                   f"reconstructed" for m in result.get("other_models") or [] for name in m.get("images", [])}

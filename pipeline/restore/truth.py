@@ -19,7 +19,10 @@ from pipeline.job.layout import JobLayout
 from pipeline.ops.metrics import pooled_psnr
 from pipeline.restore.lens import LensGrid
 from pipeline.restore.sample import sample_maps
+from pipeline.scene.images import read_image
 from pipeline.scene.records import Camera, LensCamera, View
+from pipeline.scene.split import split_views
+from pipeline.synth.ground_truth import FAR_DEPTH_M, load_ground_truth
 
 
 def warp_to_photo(image: np.ndarray, camera: Camera, lens: LensCamera) -> np.ndarray:
@@ -69,10 +72,6 @@ def score_restored(job: Path, gt_root: Path, views: Sequence[View], lenses: dict
     """Scores of the restored photos (``files``: view name -> file name in ``restored/``) against the truth of
     ``gt_root``, per photo and pooled over the held-out and the training photos. ``renders``: view name -> the
     model's J as displayed ([h, w, 3] in the view's camera; what the restore stage rendered)."""
-    from pipeline.scene.images import read_image
-    from pipeline.scene.split import split_views
-    from pipeline.synth.ground_truth import FAR_DEPTH_M, load_ground_truth
-
     layout = JobLayout(job)
     gt = load_ground_truth(gt_root, [v.name for v in views])
     truth_names = {v.name for v in gt.scene.views}

@@ -8,13 +8,21 @@ undistorted ray is the same in both: :mod:`pipeline.restore.lens` maps between t
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from pipeline.job.layout import JobLayout
+from pipeline.restore.frame import RestoreOptions, restore_file
+from pipeline.restore.lens import exact_rays
+from pipeline.restore.medium import coefficients_from_maps, water_sigma
 from pipeline.restore.records import MediumMaps, RenderedView
-from pipeline.scene.records import LensCamera, View, ray_length_factor
+from pipeline.scene.colmap import has_model
+from pipeline.scene.colmap import lens_cameras as read_lenses
+from pipeline.scene.records import Camera, LensCamera, View, ray_length_factor
 from pipeline.train.model import TrainedModel
 from pipeline.train.render import ViewOutputs, render_outputs
 
@@ -28,11 +36,6 @@ class LensModelError(FileNotFoundError):
 
 def job_water_sigma(job: Path) -> np.ndarray | None:
     """:func:`pipeline.restore.medium.water_sigma` of the job's train.json (None when it has none)."""
-    import json
-
-    from pipeline.job.layout import JobLayout
-    from pipeline.restore.medium import water_sigma
-
     path = JobLayout(job).train_result
     return water_sigma(json.loads(path.read_text())) if path.is_file() else None
 
@@ -40,9 +43,6 @@ def job_water_sigma(job: Path) -> np.ndarray | None:
 def lens_cameras(scene_dir: Path) -> dict[str, LensCamera]:
     """Image name -> its lens camera, from the SfM output ``scene_dir`` (``distorted/sparse/0``: the camera
     model bundle adjustment refined, at the photos' own resolution)."""
-    from pipeline.scene.colmap import has_model
-    from pipeline.scene.colmap import lens_cameras as read_lenses
-
     sparse = scene_dir / "distorted" / "sparse" / "0"
     if not has_model(sparse):
         raise LensModelError(f"{sparse} holds no COLMAP model: the photos' lens is unknown, so they cannot be "
@@ -56,12 +56,6 @@ def photo_view(view: View, lens: LensCamera) -> tuple[View, int]:
     SfM's undistorted crop, and a photo through a barrel lens reaches beyond it along its edges (a 1600x1200
     photo, k1 −0.12: up to 6 render pixels at the corners); the model holds the seabed there (other views saw it),
     so it is rendered, not extrapolated. No pad: the view itself."""
-    import dataclasses
-    import math
-
-    from pipeline.restore.lens import exact_rays
-    from pipeline.scene.records import Camera
-
     W, H = lens.width, lens.height
     edges = [exact_rays(lens, 0, 1), exact_rays(lens, H - 1, H), exact_rays(lens, 0, H, 0, 1),
              exact_rays(lens, 0, H, W - 1, W)]
@@ -85,8 +79,6 @@ def rendered_view(model: TrainedModel, view: View, backend: str = "auto", out: V
     (:func:`pipeline.restore.medium.coefficients_from_maps`). ``sigma``: the water's uncertainty
     (:func:`pipeline.restore.medium.water_sigma`), for the confidence maps. ``pad``: what :func:`photo_view` added
     to ``view``'s camera on each side."""
-    from pipeline.restore.medium import coefficients_from_maps
-
     medium = model.medium
     if medium is None:
         raise ValueError(NOTHING_TO_RESTORE)
@@ -131,8 +123,6 @@ def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: Len
     ``restored_dir`` (the photo's name and format, or 16-bit TIFF for ``fmt`` "tiff16"), its confidence map
     ``<stem>.png`` and surface mask ``<stem>_surface.png`` into ``confidence_dir``. Returns what restore.json
     records of it."""
-    from pipeline.restore.frame import RestoreOptions, restore_file
-
     res = restore_file(src, lens, view, restored_dir, RestoreOptions(max_gain=max_gain, space=space),
                        tiff16=fmt == "tiff16", confidence_dir=confidence_dir)
     n = lens.width * lens.height

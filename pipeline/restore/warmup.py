@@ -27,6 +27,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from pipeline.restore.synthetic import SynthFrame
+from pipeline.restore.views import restore_photo
+from pipeline.scene.images import write_image
+
 log = logging.getLogger(__name__)
 
 
@@ -49,12 +55,6 @@ CASES = (Case(8, ".jpg", "auto"), Case(8, ".jpg", "tiff16"), Case(16, ".png", "a
 def compile_restore_kernels(width: int = 64, height: int = 48) -> dict[str, float]:
     """Restore a ``width`` x ``height`` generated photo once per :data:`CASES`; returns seconds per case (the
     first includes the kernels every case shares)."""
-    import numpy as np
-
-    from pipeline.restore.synthetic import SynthFrame
-    from pipeline.restore.views import restore_photo
-    from pipeline.scene.images import write_image
-
     fr = SynthFrame(width, height, factor=8)
     I, _, _ = fr.photo_rows(0, height)
     view = fr.render(prior=True)  # a job always has the model's J as the prior

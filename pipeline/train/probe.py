@@ -34,13 +34,19 @@ import torch
 
 from pipeline.config import TrainConfig, rescheduled, to_dict
 from pipeline.job.layout import SELECTION_NAME
+from pipeline.job.markers import atomic_write_json, config_hash
 from pipeline.medium.drift import photo_drift
 from pipeline.medium.estimate import MediumEstimate, gather_observations
 from pipeline.medium.measure import measure_observed
+from pipeline.ops.metrics import pooled_psnr
 from pipeline.scene.colour import linear_to_srgb
 from pipeline.scene.exposure import neutral
 from pipeline.scene.records import Scene, View, scaled_view, view_ranges
+from pipeline.train.budget import scene_budget
 from pipeline.train.quality import box_mean
+from pipeline.train.setup import prepare_images
+from pipeline.train.targets import take
+from pipeline.train.trainer import Trainer, TrainingCancelled
 
 log = logging.getLogger(__name__)
 
@@ -222,9 +228,7 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
     Then the simplest medium mode within ``margin_db`` of the best medium mode is chosen, else ``3dgs``.
     (Splatting can imitate water in the photos, so "3dgs is within the margin of the best" alone cannot show
     that a scene has no water worth modelling out; hence the asymmetric test against 3dgs.)"""
-    detail = "; ".join(f"{m} {scores[m].psnr:.2f} dB" + (f" (water {scores[m].effect:.3f})"
-                                                        if scores[m].effect is not None else "")
-                       for m in MODES if m in scores)
+    detail = _race_detail(scores)
     if drift and drift.get("defined") and drift["score"] < cfg.no_water_drift:
         return "3dgs", (f"the photos show no water: between near and far sightings the same seabed point's colour "
                         f"changes by {drift['score']:.3f} of the seabed's contrast at most (< {cfg.no_water_drift:g};"
@@ -233,44 +237,66 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
     media = {m: s for m, s in scores.items() if s.effect is not None}
     covered = max((s.covered for s in scores.values()), default=0.0)
     if covered < cfg.min_covered:  # nothing (or next to nothing) scored: no race to rest on
-        measured = max((s.measured_effect or 0.0 for s in media.values()), default=0.0)
-        where = (f"the fitted views' Gaussians cover only {100 * covered:.1f} % of the held-back pixels "
-                 f"(< {100 * cfg.min_covered:g} %), so the race between the modes is inconclusive")
-        simplest = next((m for m in MODES if m in media), None)
-        if simplest is not None and measured >= cfg.min_measured_effect:
-            return simplest, (f"{where}; the sparse points measured water before training ({measured:.3f} >= "
-                              f"{cfg.min_measured_effect:g}): the simplest medium mode. {detail}")
-        typed = classified_water(water)
-        if simplest is not None and typed is not None and any(s.measurement in UNMEASURED for s in media.values()):
-            return simplest, (f"{where}; the classifier calls the water {typed} and the sparse points' fit failed: "
-                              f"the simplest medium mode. {detail}")
-        return "3dgs", (f"{where}, and the sparse points do not measure enough water ({measured:.3f} < "
-                        f"{cfg.min_measured_effect:g}): the simplest mode. {detail}")
-    learned = max((s.effect or 0.0 for s in media.values()), default=0.0)
-    plain = scores["3dgs"].psnr if "3dgs" in scores else -math.inf
-    best_medium = max(media, key=lambda m: media[m].psnr, default=None)
-    if best_medium is None:
+        return _decide_unscored(media, covered, cfg, water, detail)
+    if not media:
         return "3dgs", f"no medium mode was probed. {detail}"
+    return _decide_race(_Race.of(scores, media, cfg), media, cfg, water, detail)
+
+
+def _race_detail(scores: dict[str, ModeScore]) -> str:
+    """Every probed mode's held-back PSNR (and learned water), simplest first: the tail of each reason."""
+    return "; ".join(f"{m} {scores[m].psnr:.2f} dB" + (f" (water {scores[m].effect:.3f})"
+                                                      if scores[m].effect is not None else "")
+                     for m in MODES if m in scores)
+
+
+def _decide_unscored(media: dict[str, ModeScore], covered: float, cfg: ProbeConfig, water: dict | None,
+                     detail: str) -> tuple[str, str]:
+    """:func:`decide` when the fitted views cover under ``min_covered`` of the held-back pixels: no race to rest
+    on, so the water the sparse points measured, or the classifier when their fit failed, decides."""
     measured = max((s.measured_effect or 0.0 for s in media.values()), default=0.0)
-    best = media[best_medium].psnr
-    mode = next(m for m in MODES if m in media and media[m].psnr >= best - cfg.margin_db)
-    simplest = f"the simplest medium mode within {cfg.margin_db:g} dB of the best ({best_medium})"
+    where = (f"the fitted views' Gaussians cover only {100 * covered:.1f} % of the held-back pixels "
+             f"(< {100 * cfg.min_covered:g} %), so the race between the modes is inconclusive")
+    simplest = next((m for m in MODES if m in media), None)
+    if simplest is not None and measured >= cfg.min_measured_effect:
+        return simplest, (f"{where}; the sparse points measured water before training ({measured:.3f} >= "
+                          f"{cfg.min_measured_effect:g}): the simplest medium mode. {detail}")
+    typed = classified_water(water)
+    if simplest is not None and typed is not None and any(s.measurement in UNMEASURED for s in media.values()):
+        return simplest, (f"{where}; the classifier calls the water {typed} and the sparse points' fit failed: "
+                          f"the simplest medium mode. {detail}")
+    return "3dgs", (f"{where}, and the sparse points do not measure enough water ({measured:.3f} < "
+                    f"{cfg.min_measured_effect:g}): the simplest mode. {detail}")
+
+
+@dataclass(frozen=True)
+class _Race:
+    """What :func:`decide` reads of a scored race with at least one medium mode."""
+
+    learned: float  # the largest water a medium mode learned (effect)
+    measured: float  # the largest water the sparse points measured (measured_effect), 0 without a measurement
+    plain: float  # 3dgs's held-back PSNR (-inf when it was not probed)
+    best: float  # the best medium mode's held-back PSNR
+    mode: str  # the simplest medium mode within margin_db of the best
+    simplest: str  # how the reasons name ``mode``
+
+    @classmethod
+    def of(cls, scores: dict[str, ModeScore], media: dict[str, ModeScore], cfg: ProbeConfig) -> _Race:
+        best_medium = max(media, key=lambda m: media[m].psnr)
+        best = media[best_medium].psnr
+        return cls(learned=max((s.effect or 0.0 for s in media.values()), default=0.0),
+                   measured=max((s.measured_effect or 0.0 for s in media.values()), default=0.0),
+                   plain=scores["3dgs"].psnr if "3dgs" in scores else -math.inf, best=best,
+                   mode=next(m for m in MODES if m in media and media[m].psnr >= best - cfg.margin_db),
+                   simplest=f"the simplest medium mode within {cfg.margin_db:g} dB of the best ({best_medium})")
+
+
+def _decide_race(race: _Race, media: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None,
+                 detail: str) -> tuple[str, str]:
+    """:func:`decide` on a scored race: learned water, the race against plain splatting, the points' measure."""
+    learned, measured, plain, best, mode = race.learned, race.measured, race.plain, race.best, race.mode
     if learned < cfg.min_effect:
-        kinds = {s.measurement for s in media.values()}
-        typed = classified_water(water)
-        if typed is not None and kinds & UNMEASURED:  # the points could not measure it, the images show water
-            probs = (water or {}).get("probabilities") or {}
-            said = f"the classifier calls the water {typed} (p {probs.get(typed, float('nan')):.2f})"
-            if best >= plain - cfg.noise_db:
-                return mode, (f"{said}, the sparse points' fit failed (the report says why)"
-                              f" and the medium learned little of it in the probe ({learned:.3f} < "
-                              f"{cfg.min_effect:g}), but it predicts the held-back views as well as plain splatting "
-                              f"(within the probe's noise, {cfg.noise_db:g} dB): a medium, not no water; {simplest}. "
-                              f"{detail}")
-            return "3dgs", (f"{said}, but the medium predicts the held-back views worse than plain splatting by more "
-                            f"than the probe's noise ({best:.2f} < {plain:.2f} - {cfg.noise_db:g} dB) and learned "
-                            f"little water ({learned:.3f}): plain splatting. {detail}")
-        return "3dgs", f"no water worth modelling (learned water {learned:.3f} < {cfg.min_effect:g}). {detail}"
+        return _decide_little_learned(race, media, cfg, water, detail)
     weak = {s.measurement for s in media.values()} == {"measured"} and measured < cfg.min_measured_effect
     if best >= plain - cfg.noise_db and weak:  # the points measured little water: the race is won by freedom
         return "3dgs", (f"the sparse points measured little water ({measured:.3f} < {cfg.min_measured_effect:g}); "
@@ -280,16 +306,38 @@ def decide(scores: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None = 
     if best >= plain - cfg.noise_db:
         return mode, (f"the scene has water ({learned:.3f} >= {cfg.min_effect:g}) that predicts the held-back "
                       f"views as well as plain splatting (within the probe's noise, {cfg.noise_db:g} dB); "
-                      f"{simplest}. {detail}")
+                      f"{race.simplest}. {detail}")
     if measured >= cfg.min_measured_effect:
         return mode, (f"the scene has water: learned {learned:.3f} and measured from the sparse points before "
                       f"training {measured:.3f} (>= {cfg.min_measured_effect:g}); plain splatting predicts the "
                       f"held-back views {plain - best:.2f} dB better, which water the points measured cannot be "
-                      f"blamed for (real footage: exposure changes, moving animals); {simplest}. {detail}")
+                      f"blamed for (real footage: exposure changes, moving animals); {race.simplest}. {detail}")
     return "3dgs", (f"the learned water ({learned:.3f}) predicts the held-back views worse than plain "
                     f"splatting by more than the probe's noise ({best:.2f} < {plain:.2f} - {cfg.noise_db:g} dB) "
                     f"and the sparse points do not measure enough of it ({measured:.3f} < "
                     f"{cfg.min_measured_effect:g}). {detail}")
+
+
+def _decide_little_learned(race: _Race, media: dict[str, ModeScore], cfg: ProbeConfig, water: dict | None,
+                           detail: str) -> tuple[str, str]:
+    """:func:`decide` when the medium learned under ``min_effect`` of water: still water when the classifier
+    calls it medium or turbid and the sparse points' fit failed, unless the race is lost beyond the noise."""
+    kinds = {s.measurement for s in media.values()}
+    typed = classified_water(water)
+    if typed is None or not kinds & UNMEASURED:
+        return "3dgs", f"no water worth modelling (learned water {race.learned:.3f} < {cfg.min_effect:g}). {detail}"
+    # the points could not measure it, the images show water
+    probs = (water or {}).get("probabilities") or {}
+    said = f"the classifier calls the water {typed} (p {probs.get(typed, float('nan')):.2f})"
+    if race.best >= race.plain - cfg.noise_db:
+        return race.mode, (f"{said}, the sparse points' fit failed (the report says why)"
+                           f" and the medium learned little of it in the probe ({race.learned:.3f} < "
+                           f"{cfg.min_effect:g}), but it predicts the held-back views as well as plain splatting "
+                           f"(within the probe's noise, {cfg.noise_db:g} dB): a medium, not no water; "
+                           f"{race.simplest}. {detail}")
+    return "3dgs", (f"{said}, but the medium predicts the held-back views worse than plain splatting by more "
+                    f"than the probe's noise ({race.best:.2f} < {race.plain:.2f} - {cfg.noise_db:g} dB) and "
+                    f"learned little water ({race.learned:.3f}): plain splatting. {detail}")
 
 
 def probe_config(base: TrainConfig, cfg: ProbeConfig, width: int, mode: str) -> TrainConfig:
@@ -331,8 +379,6 @@ def _score(outputs: list, targets: Sequence[np.ndarray], masks: Sequence[np.ndar
     ``photographed``: the prediction as the camera recorded it (the survey's fall-off put back where the mode's
     training divided it out, :meth:`pipeline.train.exposure.ViewExposure.photographed`), so every mode is scored
     against the photos as they are."""
-    from pipeline.ops.metrics import pooled_psnr
-
     att, bs = [], []
     for out, m in zip(outputs, masks, strict=True):
         if out.A is not None and out.B is not None:
@@ -366,8 +412,6 @@ def _share(masks: Sequence[np.ndarray]) -> float:
 
 
 def _steps(trainer, n: int, should_cancel: Callable[[], bool]) -> None:
-    from pipeline.train.trainer import TrainingCancelled
-
     for _ in range(n):
         if should_cancel():
             raise TrainingCancelled(trainer.iteration)
@@ -380,10 +424,6 @@ def run_probe(scene: Scene, images: Sequence[Any], base: TrainConfig, cfg: Probe
               device: str = "cpu") -> Selection:
     """Probe ``modes`` on the training views of ``scene`` (``images[i]`` belongs to ``scene.views[i]``) and
     decide. ``base`` supplies the seed, backend and medium settings (the water decision applied)."""
-    from pipeline.train.setup import prepare_images
-    from pipeline.train.targets import take
-    from pipeline.train.trainer import Trainer
-
     cfg = cfg or ProbeConfig()
     report = on_progress or (lambda f, m: None)
     t_start = time.perf_counter()
@@ -469,9 +509,6 @@ def select_for_job(out_dir: Path, scene: Scene, images: Sequence[Any], base: Tra
     """``--mode auto`` in a job: probe, decide, scale the budget to the scene, write ``out_dir/selection.json``
     and return its content. A selection.json written for the same inputs is reused (a resumed training job
     does not probe again)."""
-    from pipeline.job.markers import atomic_write_json, config_hash
-    from pipeline.train.budget import scene_budget
-
     cfg = cfg or ProbeConfig()
     key = config_hash({"base": to_dict(base), "probe": dataclasses.asdict(cfg),
                        "views": [v.name for v in scene.views], "water": water})

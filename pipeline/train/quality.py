@@ -35,6 +35,9 @@ import numpy as np
 
 from pipeline.scene.records import Scene, View, ray_length_factor
 from pipeline.scene.seen import view_point_ranges
+from pipeline.splat.gaussians import activate
+from pipeline.train.model import model_from_state
+from pipeline.train.render import render_outputs
 
 COVER_ALPHA = 0.5  # a pixel is covered when the Gaussians' alpha is at least this
 POINT_DEPTH_TOL = 0.25  # a point's pixel renders its surface when the rendered distance is within 25 % of it
@@ -224,10 +227,6 @@ def assess_state(state: dict, scene: Scene, views: Sequence[View], budget: int, 
     resolution; ``scene`` holds their sparse points and tracks; ``photos`` their images [H, W, 3], for
     ``uncovered_detail``): per-view coverage, point coverage and water share, the Gaussian count against
     ``budget`` (0 = no cap), the opacity histogram, collapse and warnings."""
-    from pipeline.splat.gaussians import activate
-    from pipeline.train.model import model_from_state
-    from pipeline.train.render import render_outputs
-
     model = model_from_state(state)
     per_view = []
     for i, v in enumerate(views):

@@ -13,8 +13,10 @@ import torch
 from torch import Tensor, nn
 
 from pipeline.medium.model import Medium
+from pipeline.scene.colour import linear_to_srgb
 from pipeline.scene.records import View, ray_length_factor
 from pipeline.splat.gaussians import activate, sh_degree_of
+from pipeline.splat.rasterize import rasterize
 
 
 @dataclass
@@ -47,8 +49,6 @@ def render_gaussians(
     render_mode: Literal["RGB", "RGB+ED"] = "RGB",
 ) -> RenderOutput:
     """Rasterize with SH bands up to ``sh_degree`` (the active degree during warm-up). Differentiable."""
-    from pipeline.splat.rasterize import rasterize  # lazy: numba kernels load on first use
-
     g = activate(params)
     out, alpha, info = rasterize(
         g.means,
@@ -118,8 +118,6 @@ def displayed(out: ViewOutputs, colour_space: str) -> ViewOutputs:
         return out
     if colour_space != "linear":
         raise ValueError(f"unknown colour space {colour_space!r}")
-    from pipeline.scene.colour import linear_to_srgb
-
     return ViewOutputs(linear_to_srgb(out.J).astype(np.float32), linear_to_srgb(out.I).astype(np.float32), out.A,
                        out.B, out.depth, out.alpha)
 

@@ -15,6 +15,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pipeline.config import TrainConfig
+from pipeline.scene.colour import srgb_to_linear
+from pipeline.scene.loader import load_view_image
 from pipeline.scene.records import Scene, View, scaled_view
 from pipeline.splat.gaussians import GAUSSIAN_KEYS, init_from_points, init_random
 from pipeline.train.targets import PackedImages, pack_image
@@ -52,9 +54,6 @@ def load_training_images(views: Sequence[View], downscale: int, colour_space: st
     the full-size images when they are 8-bit at the training size; else within ``UINT16_TOLERANCE``.
     ``colour_space`` "linear": each photo decoded to linear light (sRGB EOTF) before it is averaged down
     (averaging is only physical in linear light). Item i is [h, w, 3] float32."""
-    from pipeline.scene.colour import srgb_to_linear
-    from pipeline.scene.loader import load_view_image
-
     if colour_space not in ("srgb", "linear"):
         raise ValueError(f"unknown colour space {colour_space!r}")
 

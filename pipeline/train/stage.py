@@ -5,25 +5,26 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+from pipeline.config import TrainConfig, to_dict
 from pipeline.job.layout import JobLayout
+from pipeline.job.markers import atomic_write_json
 from pipeline.job.options import JobCancelled, JobOptions, StageContext
-
-if TYPE_CHECKING:
-    from pipeline.config import TrainConfig
+from pipeline.scene.loader import load_scene
+from pipeline.scene.records import scaled_view
+from pipeline.scene.split import split_views
+from pipeline.train import guard
+from pipeline.train.hooks import curve_subset
+from pipeline.train.photo_exposure import job_photo_exposure
+from pipeline.train.probe import select_for_job
+from pipeline.train.resolve import resolve_train_config, training_downscale
+from pipeline.train.schedule import RULE, Schedule, coarse_iterations, iterations_factor
+from pipeline.train.setup import load_training_images
+from pipeline.train.trainer import TrainingCancelled
+from pipeline.water.controller import medium_start_iteration
 
 
 def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
-    from pipeline.config import to_dict
-    from pipeline.job.markers import atomic_write_json
-    from pipeline.scene.loader import load_scene
-    from pipeline.scene.split import split_views
-    from pipeline.train.guard import train_checked
-    from pipeline.train.resolve import resolve_train_config, training_downscale
-    from pipeline.train.setup import load_training_images
-    from pipeline.train.trainer import TrainingCancelled
-
     layout = JobLayout(job)
     scene = load_scene(layout.scene)
     train_views, test_views = split_views(scene.views)
@@ -40,8 +41,6 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     cfg = resolve_train_config(opts, scene.views[0].camera.width, water, selection, len(scene.views))
     atomic_write_json(layout.train_config, to_dict(cfg))
     start = PROBE_SHARE if selection is not None else 0.0
-    from pipeline.train.hooks import curve_subset
-
     curve_views = [test_views[i] for i in curve_subset(len(test_views))]  # a few views keep the curve cheap
     test_images = load_training_images(curve_views, down, opts.colour_space)
 
@@ -49,16 +48,15 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         ctx.on_progress("train", start + (1 - start) * it / max(1, total), f"iteration {it}/{total}")
 
     try:
-        res, quality, recovery = train_checked(train_scene, images, cfg, layout.train, test_views=curve_views,
-                                               test_images=test_images, on_progress=progress,
-                                               should_cancel=ctx.should_cancel, device=ctx.device)
+        # through the module: tests/job/test_layout.py replaces guard.train_checked to see what training gets
+        res, quality, recovery = guard.train_checked(train_scene, images, cfg, layout.train,
+                                                     test_views=curve_views, test_images=test_images,
+                                                     on_progress=progress, should_cancel=ctx.should_cancel,
+                                                     device=ctx.device)
     except TrainingCancelled as e:
         raise JobCancelled(str(e)) from e
     exposure = res.exposure
     if exposure is not None:  # every photo's exposure, measured once against the trained model
-        from pipeline.scene.records import scaled_view
-        from pipeline.train.photo_exposure import job_photo_exposure
-
         exposure = job_photo_exposure(job, [scaled_view(v, cfg.downscale) for v in scene.views], exposure,
                                       cfg.backend)
     out = {"mode": cfg.mode, "iterations": res.iteration, "metrics": res.metrics, "history": res.history,
@@ -73,10 +71,6 @@ def stage_train(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
 
 def job_schedule(cfg: TrainConfig, views: int, train_scene, explicit: bool) -> dict:
     """The schedule block of train_result.json and report.json (``pipeline.train.schedule.Schedule``)."""
-    from pipeline.scene.records import scaled_view
-    from pipeline.train.schedule import RULE, Schedule, coarse_iterations, iterations_factor
-    from pipeline.water.controller import medium_start_iteration
-
     cam = scaled_view(train_scene.views[0], cfg.downscale).camera
     n = len(train_scene.views)
     d = cfg.densify  # resolved: in a medium mode its refine_stop is already the later one (medium_densify)
@@ -100,9 +94,6 @@ def select_mode(job: Path, base: TrainConfig, scene, images, water: dict | None,
     """``--mode auto``: the probe on the training views (``pipeline.train.probe``) -> ``JobLayout.selection``.
     ``base`` is the job's config resolved before the choice (``resolve_train_config`` without a selection):
     the probe's runs take their seed, backend and medium settings (the water decision) from it."""
-    from pipeline.train.probe import select_for_job
-    from pipeline.train.trainer import TrainingCancelled
-
     try:
         return select_for_job(JobLayout(job).train, scene, images, base, water=water,
                               on_progress=lambda f, m: ctx.on_progress("train", PROBE_SHARE * f, m),
