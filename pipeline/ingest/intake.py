@@ -25,6 +25,7 @@ import numpy as np
 from pipeline.ingest.archive import ArchiveLimits, extract_archive
 from pipeline.ingest.video import VideoConfig, VideoError, extract_keyframes, is_video
 from pipeline.job.layout import JobLayout
+from pipeline.scene.images import ImageReadError, read_pixels, write_image
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +70,7 @@ def safe_name(rel: Path) -> str:
 
 def _probe(path: Path) -> tuple[str, int]:
     """(format name, EXIF orientation) from the header, by content; ("", 1) when OIIO does not know the file."""
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: native image library, loaded only when a file is read or written
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
@@ -91,8 +92,6 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     Writes the job's images and ``JobLayout.ingest``; returns the result. Raises IngestError or
     pipeline.ingest.archive.ArchiveError. ``tick(fraction of files done, message)`` is called per video and while
     one decodes (it may raise to stop)."""
-    from pipeline.scene.images import ImageReadError, read_pixels, write_image
-
     cfg = cfg or IngestConfig()
     source, job_dir = Path(source), Path(job_dir)
     layout = JobLayout(job_dir)

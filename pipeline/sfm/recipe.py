@@ -38,6 +38,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 from pipeline.config import SfmConfig
 from pipeline.scene.colmap import quiet_pycolmap
 from pipeline.scene.images import (
@@ -193,7 +195,7 @@ def run_sfm(
     pycolmap step raise ``InterruptedError`` when cancelled. Raises a subclass of :class:`SfmError` when
     no usable model results, ``ValueError`` for an invalid config.
     """
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     cfg = cfg or SfmConfig()
     _check_config(cfg)
@@ -424,7 +426,7 @@ class _Attempt:
 
     def run(self, db_path: Path, feature_dir: Path, distorted: Path, images_dir: Path) -> tuple[list, list[str]]:
         """(the models, largest first; the names that were read); raises NoModelError / TooFewRegisteredError."""
-        import pycolmap
+        import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
         if db_path.exists():
             db_path.unlink()
@@ -566,8 +568,6 @@ def _retry_dropped(
 def _stage_stretched(src_dir: Path, names: list[str], stage: Path) -> Path:
     """Contrast-stretched 8-bit copies of ``names`` (same names) for feature extraction: each channel linearly
     from its ``STRETCH_PERCENTILES`` to [0, 1]."""
-    import numpy as np
-
     stage.mkdir(parents=True, exist_ok=True)
     for n in names:
         img = read_image(src_dir / n)  # [H, W, 3] in [0, 1]
@@ -578,7 +578,7 @@ def _stage_stretched(src_dir: Path, names: list[str], stage: Path) -> Path:
 
 
 def _db_image_names(db_path: Path) -> set[str]:
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -589,7 +589,7 @@ def _db_image_names(db_path: Path) -> set[str]:
 
 def _num_inlier_matches(db_path: Path) -> int:
     """Inlier correspondences over all pairs (``num_verified_image_pairs`` counts 0-inlier pairs too)."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -604,7 +604,7 @@ def _pair_stats(db_path: Path, overlap: int) -> tuple[int, int]:
     Image ids follow the sorted names, so the sequential matcher pairs ids ``d`` apart for ``d <= overlap`` and
     (quadratic overlap) ``d = 2**k``; any other verified pair came from loop detection (or from exhaustive
     matching across the survey)."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -656,7 +656,7 @@ def _name_range(names: list[str]) -> str:
 
 
 def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: Path, *, guided: bool = False) -> None:
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     mopts = pycolmap.FeatureMatchingOptions()
     mopts.num_threads = cfg.num_threads
@@ -682,7 +682,7 @@ def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: 
 
 def _undistort(model_dir: Path, image_dir: Path, out: Path, tmp: Path, cfg: SfmConfig, token: Any) -> None:
     """PINHOLE undistortion into ``out/images`` and ``out/sparse/0`` (MVS leftovers dropped)."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), num_threads=cfg.image_threads,
                               cancellation_token=token)  # fmt: skip

@@ -47,8 +47,8 @@ class DensifyEvent:
 
 def _make_strategy(cfg: DensifyConfig) -> Any:
     """A configured ``_Strategy`` (gsplat is imported here, lazily)."""
-    from gsplat.strategy import DefaultStrategy
-    from gsplat.strategy.ops import reset_opa
+    from gsplat.strategy import DefaultStrategy  # lazy: optional CUDA backend; its extension builds on first use
+    from gsplat.strategy.ops import reset_opa  # lazy: optional CUDA backend; its extension builds on first use
 
     @dataclass
     class _Strategy(DefaultStrategy):

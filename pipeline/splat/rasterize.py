@@ -17,6 +17,8 @@ import logging
 import torch
 from torch import Tensor
 
+from pipeline.splat import _cpu_backend, _cuda_backend, _torch_ref
+
 logger = logging.getLogger(__name__)
 
 RENDER_MODES = ("RGB", "RGB+ED", "ED")
@@ -81,8 +83,6 @@ def rasterize(
     if sh_rest is not None and name != "cpu":  # the other backends read the coefficients whole
         colors, sh_rest = torch.cat([colors, sh_rest], dim=1), None
     if name == "cuda":
-        from pipeline.splat import _cuda_backend
-
         return _cuda_backend.rasterize(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
@@ -92,10 +92,7 @@ def rasterize(
     with_colors = render_mode in ("RGB", "RGB+ED")
     with_depth = render_mode in ("ED", "RGB+ED")
     bg = _feature_backgrounds(backgrounds, C, with_colors, with_depth, means)  # [C, F] or None
-    if name == "cpu":
-        from pipeline.splat import _cpu_backend as impl
-    else:
-        from pipeline.splat import _torch_ref as impl
+    impl = _cpu_backend if name == "cpu" else _torch_ref
     apart = {} if sh_rest is None else {"sh_rest": sh_rest}  # only the cpu backend keeps one (concatenated above)
     img, alpha, info = impl.render(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
