@@ -18,6 +18,7 @@ import shutil
 import unicodedata
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ import numpy as np
 from pipeline.ingest.archive import ArchiveLimits, extract_archive
 from pipeline.ingest.video import VideoConfig, VideoError, extract_keyframes, is_video
 from pipeline.job.layout import JobLayout
+from pipeline.scene.images import ImageReadError, read_pixels, write_image
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +71,7 @@ def safe_name(rel: Path) -> str:
 
 def _probe(path: Path) -> tuple[str, int]:
     """(format name, EXIF orientation) from the header, by content; ("", 1) when OIIO does not know the file."""
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: native image library, loaded only when a file is read or written
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
@@ -91,8 +93,6 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     Writes the job's images and ``JobLayout.ingest``; returns the result. Raises IngestError or
     pipeline.ingest.archive.ArchiveError. ``tick(fraction of files done, message)`` is called per video and while
     one decodes (it may raise to stop)."""
-    from pipeline.scene.images import ImageReadError, read_pixels, write_image
-
     cfg = cfg or IngestConfig()
     source, job_dir = Path(source), Path(job_dir)
     layout = JobLayout(job_dir)
@@ -100,23 +100,8 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     if images_dir.exists():
         shutil.rmtree(images_dir)  # a re-run starts clean: the marker was not written, so this is partial
     images_dir.mkdir(parents=True)
-    unpacked = layout.unpacked
     ignored: list[dict] = []
-    if source.is_dir():
-        root = source
-        candidates = _candidates(root)
-    elif source.is_file() and is_video(source):  # one video as the whole input (`dualphys run dive.mp4`)
-        root, candidates = source.parent, [source]
-    elif source.is_file():
-        if unpacked.exists():
-            shutil.rmtree(unpacked)
-        extracted = extract_archive(source, unpacked, cfg.limits)
-        ignored += [{"file": n, "reason": why} for n, why in extracted.ignored]
-        root = unpacked
-        candidates = _candidates(root)
-    else:
-        raise IngestError("no_input", f"no such file or folder: {source}")
-
+    root, candidates = _gather(source, layout.unpacked, cfg.limits, ignored)
     written: dict[str, str] = {}
     skipped: list[dict] = []
     videos: list[dict] = []
@@ -124,39 +109,13 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
         rel = path.relative_to(root)
         if rel.name.startswith(".") or path.suffix.lower() in NON_IMAGE_SUFFIXES:
             ignored.append({"file": str(rel), "reason": "not an image file"})
-            continue
-        if is_video(path):
-            on_frames = None
-            if tick is not None:
-                tick(i / len(candidates), f"video {rel}")
-                on_frames = lambda n, i=i, rel=rel: tick(i / len(candidates), f"video {rel}: {n} frames")  # noqa: E731
-            try:
-                report = extract_keyframes(path, str(rel), images_dir, Path(safe_name(rel)).stem, written, cfg.video,
-                                           on_frames)
-            except VideoError as e:
-                skipped.append({"file": str(rel), "reason": str(e)})
-                videos.append({"file": str(rel), "error": str(e), "code": e.code})
-                continue
-            videos.append(report.to_json())
-            continue
-        try:
-            px = read_pixels(path)  # full decode: catches truncated and corrupt files
-        except ImageReadError as e:  # the decoder's message may quote the server-side path: name it as the user did
-            skipped.append({"file": str(rel), "reason": _without_paths(e.reason, {path: rel, root: None})})
-            continue
-        fmt, orientation = _probe(path)
-        stem = Path(safe_name(rel)).stem
-        if orientation == 1 and fmt in ("jpeg", "png"):
-            name = _unique(f"{stem}.{'jpg' if fmt == 'jpeg' else 'png'}", written)
-            shutil.copyfile(path, images_dir / name)
+        elif is_video(path):
+            say = None if tick is None else partial(tick, i / len(candidates))
+            videos.append(_take_video(path, rel, images_dir, written, cfg.video, skipped, say))
         else:
-            name = _unique(f"{stem}.png", written)
-            bits = 16 if px.dtype != np.uint8 and fmt in ("tiff", "png", "openexr") else 8
-            rgb = px[:, :, :3] if px.shape[2] >= 3 else np.repeat(px[:, :, :1], 3, axis=2)
-            write_image(images_dir / name, np.clip(rgb, 0, 1), bits=bits)
-        written[name] = str(rel)
-    if unpacked.exists():
-        shutil.rmtree(unpacked)
+            _take_image(path, rel, root, images_dir, written, skipped)
+    if layout.unpacked.exists():
+        shutil.rmtree(layout.unpacked)
     result = IngestResult(sorted(written), skipped, ignored, shown_source(source, job_dir), videos)
     if len(written) < cfg.min_images:
         why = f"{len(written)} usable image(s) found; at least {cfg.min_images} are needed"
@@ -167,6 +126,60 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     log.info("ingest: %d images (%d from %d videos), %d skipped, %d ignored", len(written),
              sum(len(v.get("kept", ())) for v in videos), len(videos), len(skipped), len(ignored))
     return result
+
+
+def _gather(source: Path, unpacked: Path, limits: ArchiveLimits, ignored: list[dict]) -> tuple[Path, list[Path]]:
+    """(the folder the input's files are named from, the files): a folder's files, one video, or an archive's
+    files extracted to ``unpacked`` (its non-image members listed in ``ignored``). Raises IngestError."""
+    if source.is_dir():
+        return source, _candidates(source)
+    if source.is_file() and is_video(source):  # one video as the whole input (`dualphys run dive.mp4`)
+        return source.parent, [source]
+    if source.is_file():
+        if unpacked.exists():
+            shutil.rmtree(unpacked)
+        extracted = extract_archive(source, unpacked, limits)
+        ignored += [{"file": n, "reason": why} for n, why in extracted.ignored]
+        return unpacked, _candidates(unpacked)
+    raise IngestError("no_input", f"no such file or folder: {source}")
+
+
+def _take_video(path: Path, rel: Path, images_dir: Path, written: dict[str, str], cfg: VideoConfig,
+                skipped: list[dict], say: Callable[[str], None] | None) -> dict:
+    """Write the video's keyframes to ``images_dir`` (named in ``written``); returns its report, or its error
+    (the video then also listed in ``skipped``). ``say(message)`` is the progress tick (it may raise to stop)."""
+    on_frames = None
+    if say is not None:
+        say(f"video {rel}")
+        on_frames = lambda n: say(f"video {rel}: {n} frames")  # noqa: E731
+    try:
+        report = extract_keyframes(path, str(rel), images_dir, Path(safe_name(rel)).stem, written, cfg, on_frames)
+    except VideoError as e:
+        skipped.append({"file": str(rel), "reason": str(e)})
+        return {"file": str(rel), "error": str(e), "code": e.code}
+    return report.to_json()
+
+
+def _take_image(path: Path, rel: Path, root: Path, images_dir: Path, written: dict[str, str],
+                skipped: list[dict]) -> None:
+    """Decode the image whole; copy a JPEG/PNG in display orientation byte for byte, write anything else upright
+    as PNG, and name it in ``written``; or list it in ``skipped`` with the decoder's reason."""
+    try:
+        px = read_pixels(path)  # full decode: catches truncated and corrupt files
+    except ImageReadError as e:  # the decoder's message may quote the server-side path: name it as the user did
+        skipped.append({"file": str(rel), "reason": _without_paths(e.reason, {path: rel, root: None})})
+        return
+    fmt, orientation = _probe(path)
+    stem = Path(safe_name(rel)).stem
+    if orientation == 1 and fmt in ("jpeg", "png"):
+        name = _unique(f"{stem}.{'jpg' if fmt == 'jpeg' else 'png'}", written)
+        shutil.copyfile(path, images_dir / name)
+    else:
+        name = _unique(f"{stem}.png", written)
+        bits = 16 if px.dtype != np.uint8 and fmt in ("tiff", "png", "openexr") else 8
+        rgb = px[:, :, :3] if px.shape[2] >= 3 else np.repeat(px[:, :, :1], 3, axis=2)
+        write_image(images_dir / name, np.clip(rgb, 0, 1), bits=bits)
+    written[name] = str(rel)
 
 
 def shown_source(source: Path, job_dir: Path) -> str:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.ingest.keyframes import REJECT_REASONS, Keyframe, KeyframeConfig, KeyframeSelector
+from pipeline.scene.images import write_image
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +87,7 @@ def extract_keyframes(path: Path, shown: str, images_dir: Path, stem: str, taken
     ``taken``: name → source), return the report. ``shown`` names the file in messages; ``on_frames(n)`` is
     called every TICK_FRAMES frames (it may raise to stop: a cancelled job). Raises VideoError when the video
     gives no frame at all."""
-    import av
+    import av  # lazy: PyAV loads FFmpeg only when a video is decoded or encoded
 
     report = VideoReport(file=shown)
     try:
@@ -118,7 +119,7 @@ def extract_keyframes(path: Path, shown: str, images_dir: Path, stem: str, taken
 def _select(container, stream, report: VideoReport, images_dir: Path, stem: str, taken: dict[str, str],
             cfg: VideoConfig, created: datetime | None, path: Path, shown: str,
             on_frames: Callable[[int], None] | None) -> None:
-    import av
+    import av  # lazy: PyAV loads FFmpeg only when a video is decoded or encoded
 
     selector = KeyframeSelector(cfg.keyframes, report.fps or 30.0)
     held = None  # (index, frame) of the best candidate so far, at full size
@@ -177,8 +178,6 @@ def _analysis_grey(frame, width: int) -> np.ndarray:
 def _write_jpeg(path: Path, frame, quality: int) -> None:
     """The frame upright: a phone's display matrix (``frame.rotation``, degrees counter-clockwise, as FFmpeg's
     av_display_rotation_get) is applied, as players and ``ffmpeg`` (autorotate) do; GoPro-style cameras record 0."""
-    from pipeline.scene.images import write_image
-
     rgb = frame.to_ndarray(format="rgb24")  # [H, W, 3] uint8
     k = round((frame.rotation or 0) / 90) % 4
     write_image(path, np.ascontiguousarray(np.rot90(rgb, k)) if k else rgb, quality=quality)

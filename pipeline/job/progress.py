@@ -20,7 +20,7 @@ class StageProgress:
         self._tqdm: Any = None
         if use_tqdm is not False:
             try:
-                from tqdm import tqdm
+                from tqdm import tqdm  # lazy: an optional package; without it progress is a plain line
 
                 self._tqdm = tqdm
             except ImportError:

@@ -26,6 +26,9 @@ import shutil
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+import torch
+from torch.utils._pytree import tree_leaves
+
 log = logging.getLogger(__name__)
 
 MIN_ITERATIONS = 2000  # "auto" compiles runs at least this long: the presets (fast 3,000) and surveys, not tests
@@ -71,7 +74,7 @@ class Compiled:
             return self.eager(*args, **kwargs)
         try:
             if self._compiled is None:
-                import torch
+                # lazy: dynamo and inductor add ~1 s to import; only a compiled run needs them
                 import torch._dynamo.config
                 import torch._inductor.config
 
@@ -95,9 +98,6 @@ def _trial(compiled: Callable[..., Any], args: tuple, kwargs: dict) -> None:
     """Forward and backward of ``compiled`` on the call's own arguments, the backward by ``torch.autograd.grad``
     with respect to the tensor arguments only: no parameter's or tensor's ``.grad`` changes, and the autograd
     engine stops at those tensors (a render's own backward does not run). The result is thrown away."""
-    import torch
-    from torch.utils._pytree import tree_leaves
-
     inputs = [x for x in tree_leaves((args, kwargs)) if isinstance(x, torch.Tensor) and x.requires_grad]
     outs = [y for y in tree_leaves(compiled(*args, **kwargs)) if isinstance(y, torch.Tensor) and y.requires_grad]
     if inputs and outs:
@@ -106,7 +106,7 @@ def _trial(compiled: Callable[..., Any], args: tuple, kwargs: dict) -> None:
 
 def dynamic_rows(t: Any) -> Any:
     """``t`` with its first dimension marked as varying between calls (no recompile per size); returns ``t``."""
-    import torch._dynamo
+    import torch._dynamo  # lazy: dynamo and inductor add ~1 s to import; only a compiled run needs them
 
     torch._dynamo.maybe_mark_dynamic(t, 0)
     return t

@@ -14,16 +14,18 @@ Registering the two operators at import defines them and runs nothing; numba loa
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import torch
 from torch import Tensor
 
+from pipeline.splat._cpu_backend import pin_threading_layer
+
 
 def _kernels():
-    from pipeline.splat._cpu_backend import pin_threading_layer
-
     pin_threading_layer()  # SSIM may be the first parallel numba call of a process (evaluation)
-    from pipeline.ops import _ssim_kernels
+    from pipeline.ops import _ssim_kernels  # lazy: imports numba and loads (or compiles) the kernels
 
     return _ssim_kernels
 
@@ -92,8 +94,6 @@ def ssim_planes(x: Tensor, y: Tensor, g: Tensor, c1: float, c2: float) -> Tensor
 def compile_ssim_kernels() -> float:
     """Call both kernels once (forward and backward of a small image), so they compile into numba's on-disk cache
     before the first job (``dualphys warmup``); returns the seconds it took."""
-    import time
-
     t0 = time.perf_counter()
     x = torch.rand(3, 16, 24, requires_grad=True)
     ssim_planes(x, torch.rand(3, 16, 24), torch.full((11,), 1 / 11), 1e-4, 9e-4).backward()

@@ -31,7 +31,7 @@ def _is_torch(x: object) -> bool:
 def srgb_to_linear(x: ArrayT) -> ArrayT:
     """sRGB-encoded [0, 1] → linear light [0, 1]: x/12.92 up to 0.04045, ((x + 0.055)/1.055)^2.4 above."""
     if _is_torch(x):
-        import torch
+        import torch  # lazy: only torch inputs need torch; numpy callers stay torch-free
 
         power = ((x.clamp(min=SRGB_THRESHOLD) + OFFSET) / (1 + OFFSET)) ** GAMMA  # type: ignore[attr-defined]
         return torch.where(x <= SRGB_THRESHOLD, x / SLOPE, power)  # type: ignore[return-value,operator]
@@ -43,7 +43,7 @@ def srgb_to_linear(x: ArrayT) -> ArrayT:
 def linear_to_srgb(x: ArrayT) -> ArrayT:
     """Linear light [0, 1] → sRGB-encoded [0, 1]: 12.92·x up to 0.0031308, 1.055·x^(1/2.4) − 0.055 above."""
     if _is_torch(x):
-        import torch
+        import torch  # lazy: only torch inputs need torch; numpy callers stay torch-free
 
         power = (1 + OFFSET) * x.clamp(min=LINEAR_THRESHOLD) ** (1 / GAMMA) - OFFSET  # type: ignore[attr-defined]
         return torch.where(x <= LINEAR_THRESHOLD, x * SLOPE, power)  # type: ignore[return-value,operator]

@@ -28,7 +28,7 @@ def neutral(x: ArrayT, log_gain, space: str = "srgb") -> ArrayT:
     if space not in ("srgb", "linear"):
         raise ValueError(f"unknown colour space {space!r}")
     if type(x).__module__.startswith("torch"):
-        import torch
+        import torch  # lazy: only torch inputs need torch; numpy callers stay torch-free
 
         inv = torch.exp(-torch.as_tensor(log_gain, dtype=x.dtype, device=x.device))  # type: ignore[attr-defined]
     else:

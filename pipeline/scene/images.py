@@ -49,7 +49,7 @@ def read_pixels(path: str | os.PathLike[str]) -> np.ndarray:
     JPEG file" on a truncated download, which OIIO's ImageBuf would hide by filling grey) raises
     :class:`ImageReadError`.
     """
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: native image library, loaded only when a file is read or written
 
     path = Path(path)
     if not path.is_file():
@@ -96,7 +96,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
 
 def image_orientation(path: str | os.PathLike[str]) -> int:
     """The EXIF orientation tag of a file (1 = as stored, also when absent or unreadable); header only."""
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: native image library, loaded only when a file is read or written
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
@@ -118,7 +118,7 @@ def write_image(
     TIFF 8/16/32, EXR 32 (float32), JPEG 8 (``quality``). The file is written to a temporary name in the same
     folder and renamed, so a reader never sees half a file. Returns the path.
     """
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: native image library, loaded only when a file is read or written
 
     path = Path(path)
     ext = path.suffix.lower()
@@ -238,7 +238,7 @@ def _area_matrix(n_in: int, n_out: int) -> np.ndarray:
 
 
 def _quantise(a: np.ndarray, bits: int) -> tuple[np.ndarray, object]:
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: native image library, loaded only when a file is read or written
 
     if bits == 32:
         return np.ascontiguousarray(a, dtype=np.float32), oiio.FLOAT
@@ -255,7 +255,7 @@ def _quantise(a: np.ndarray, bits: int) -> tuple[np.ndarray, object]:
 
 def _reorient(px: np.ndarray, orientation: int) -> np.ndarray:
     """Apply an EXIF orientation (2..8) with OIIO's ``ImageBufAlgo.reorient``.  # [H, W, C] -> [H', W', C]"""
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: native image library, loaded only when a file is read or written
 
     h, w, c = px.shape
     buf = oiio.ImageBuf(oiio.ImageSpec(w, h, c, oiio.FLOAT))

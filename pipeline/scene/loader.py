@@ -134,7 +134,7 @@ def undistort_cached(
     Returns (cache/images, cache/sparse). Refuses to write into a non-empty folder that is not one of its
     own caches, so a mistyped ``workdir`` never gets wiped.
     """
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     key = {
         "sparse": str(sparse_dir.resolve()),

@@ -53,7 +53,7 @@ class LensCamera:
     def colmap(self):
         """The same camera as a ``pycolmap.Camera`` (whose ``cam_from_img`` undistorts pixel-centre coordinates
         [N, 2] into normalised rays [N, 2])."""
-        import pycolmap
+        import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
         return pycolmap.Camera(model=self.model, width=self.width, height=self.height,
                                params=np.asarray(self.params, dtype=np.float64))

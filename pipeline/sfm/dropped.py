@@ -23,7 +23,7 @@ def drop_reasons(
     that holds: in a side model; no SIFT features; no verified pair with at least ``min_matches`` inliers (the
     mapper ignores weaker pairs); else it had matches but the mapper could not register it (the best pair is
     named, and the best pair with a frame of the kept model)."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     db = pycolmap.Database.open(str(db_path))
     try:

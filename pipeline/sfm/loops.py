@@ -13,6 +13,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
+
 log = logging.getLogger(__name__)
 
 MAX_TRAIN_DESCRIPTORS = 40_000  # k-means cost grows with samples x words; 40 k keeps the build at a few seconds
@@ -42,8 +44,7 @@ def build_vocab_tree(db_path: Path, out_path: Path, seed: int) -> int:
     different trees (pycolmap 4.2.1 on an AMD EPYC machine; the clustering's threads race), with 1 they are
     byte-identical. Returns the number of visual words.
     """
-    import numpy as np
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     db = pycolmap.Database.open(str(db_path))
     try:

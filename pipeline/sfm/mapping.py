@@ -34,7 +34,7 @@ RELAXED_MIN_NUM_MATCHES = 10  # pairs with fewer verified matches are not used b
 
 def mapper_options(cfg: SfmConfig, *, relaxed: bool = False) -> Any:
     """Seeded ``IncrementalPipelineOptions``: COLMAP's thresholds, or the ladder's :data:`RELAXED_MAPPER` ones."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = cfg.num_threads
@@ -58,7 +58,7 @@ def map_models(
 
     ``start_from`` (a model folder) continues that model instead of starting from nothing: the mapper tries to
     register the database's other images into it (and may start further models from what remains)."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     opts = mapper_options(cfg, relaxed=relaxed)
     tmp = work / "_models"

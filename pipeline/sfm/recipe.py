@@ -38,6 +38,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 from pipeline.config import SfmConfig
 from pipeline.scene.colmap import quiet_pycolmap
 from pipeline.scene.images import (
@@ -193,12 +195,51 @@ def run_sfm(
     pycolmap step raise ``InterruptedError`` when cancelled. Raises a subclass of :class:`SfmError` when
     no usable model results, ``ValueError`` for an invalid config.
     """
-    import pycolmap
-
     cfg = cfg or SfmConfig()
     _check_config(cfg)
     t0 = time.perf_counter()
     images_dir, out = Path(images_dir), Path(out_dir)
+    good, skipped, total = _readable_images(images_dir, out)
+    distorted = _fresh_output(out)
+    warnings: list[str] = []
+    src_dir = _stage_oriented(images_dir, good, distorted / "oriented", warnings)
+    names = [p.name for p in good]
+    matcher = choose_matcher(names, cfg)
+    sizes = set(good.values())
+    camera_mode = _camera_mode(sizes, cfg, warnings)
+    log.info("sfm: %d readable of %d images, %s matching, %s", len(good), total, matcher, cfg.camera_model)
+
+    with quiet_pycolmap(log):
+        attempt = _first_attempt(src_dir, names, camera_mode, matcher, cfg, cancellation_token, skipped)
+        found = _map_or_stretch(attempt, names, distorted, images_dir, warnings)
+        retries = _retry_or_fail(found, attempt, distorted, sizes, cfg)
+        rec, names = found.recs[0], found.names
+        registered = rec.num_reg_images()
+        reproj = float(rec.compute_mean_reprojection_error())
+        placed = {im.name for im in rec.images.values() if im.has_pose}
+        others = separate_models(_write_models(found.recs, distorted / "sparse"), placed)
+        t_und = time.perf_counter()
+        _undistort(distorted / "sparse" / "0", src_dir, out, distorted / "_undistort", cfg, cancellation_token)
+        attempt.phases["undistort"] = time.perf_counter() - t_und
+
+    min_matches = RELAXED_MIN_NUM_MATCHES if retries else mapper_options(cfg).min_num_matches
+    dropped = drop_reasons(found.db, names, placed, [(m.index, m.images) for m in others], min_matches)
+    warnings += _outcome_warnings(names, registered, retries, others, skipped)
+    summary = SfmSummary(
+        registered=registered, total=total, mean_reproj_error_px=reproj, num_points3D=rec.num_points3D(),
+        seconds=time.perf_counter() - t0, matcher=matcher, skipped=skipped, warnings=warnings,
+        unregistered=[n for n in names if n not in placed], other_models=others, pairs_matched=attempt.stats[0],
+        loop_pairs=attempt.stats[1], phase_seconds={k: round(v, 3) for k, v in attempt.phases.items()},
+        dropped=dropped, retries=retries,
+    )  # fmt: skip
+    _log_outcome(summary)
+    return summary
+
+
+def _readable_images(images_dir: Path, out: Path) -> tuple[dict[Path, tuple[int, int]], list[tuple[str, str]], int]:
+    """The images of ``images_dir`` that decode ({path: (width, height)}), the files that do not ([(name,
+    reason)]) and the count of image files; raises ValueError when ``out`` would overwrite them, NoImagesError
+    or TooFewImagesError when too few decode."""
     if (out / "images").resolve() == images_dir.resolve():
         raise ValueError(
             f"run_sfm would overwrite its input {images_dir} with undistorted images; pick another out_dir"
@@ -212,92 +253,125 @@ def run_sfm(
             f"no images in {images_dir} (looked for {', '.join(sorted(IMAGE_EXTENSIONS))}, any case)"
         )
     good, skipped = _probe(files)
-    warnings: list[str] = []
-    total = len(files)
     if not good:
         raise NoImagesError(
-            f"none of the {total} image files in {images_dir} can be decoded", skipped=skipped
+            f"none of the {len(files)} image files in {images_dir} can be decoded", skipped=skipped
         )
     if len(good) < MIN_IMAGES:
         raise TooFewImagesError(_too_few_msg(len(good), images_dir), skipped=skipped)
+    return good, skipped, len(files)
 
+
+def _fresh_output(out: Path) -> Path:
+    """Remove a previous run's ``images/``, ``sparse/`` and ``distorted/`` from ``out``; returns the new, empty
+    ``distorted/``."""
     distorted = out / "distorted"
     for old in (out / "images", out / "sparse", distorted):
         if old.exists():
             shutil.rmtree(old)
     distorted.mkdir(parents=True)
-    src_dir = _stage_oriented(images_dir, good, distorted / "oriented", warnings)
-    names = [p.name for p in good]
-    matcher = choose_matcher(names, cfg)
-    sizes = set(good.values())
-    camera_mode = pycolmap.CameraMode.AUTO
+    return distorted
+
+
+def _camera_mode(sizes: set[tuple[int, int]], cfg: SfmConfig, warnings: list[str]) -> Any:
+    """One camera for all images when ``cfg.single_camera`` and they share one size (else a warning), otherwise
+    COLMAP's AUTO."""
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
+
     if cfg.single_camera and len(sizes) == 1:
-        camera_mode = pycolmap.CameraMode.SINGLE
-    elif cfg.single_camera:
+        return pycolmap.CameraMode.SINGLE
+    if cfg.single_camera:
         warnings.append(
             f"images have {len(sizes)} different sizes, so they cannot share one camera: "
             f"separate cameras are estimated instead"
         )
-    log.info("sfm: %d readable of %d images, %s matching, %s", len(good), total, matcher, cfg.camera_model)
+    return pycolmap.CameraMode.AUTO
 
-    with quiet_pycolmap(log):
-        pycolmap.set_random_seed(cfg.seed)
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = cfg.camera_model
-        ext = pycolmap.FeatureExtractionOptions()
-        ext.num_threads = cfg.image_threads
-        ext.max_image_size = cfg.max_image_size
-        ext.sift.max_num_features = cfg.max_num_features
-        attempt = _Attempt(src_dir, names, camera_mode, reader, ext, matcher, cfg, cancellation_token, skipped)
-        recs, first_error = None, None
-        db_used, feature_dir = distorted / "database.db", src_dir
-        try:
-            recs, names = attempt.run(distorted / "database.db", src_dir, distorted, images_dir)
-        except (NoModelError, TooFewRegisteredError) as e:
-            first_error = e
-        placed_anywhere = sum(r.num_reg_images() for r in recs) if recs is not None else 0
-        if placed_anywhere < RETRY_BELOW_REGISTERED * len(names):
-            # Murky water: SIFT's contrast threshold leaves too few features on a dark, hazy frame. Extract
-            # them again from contrast-stretched copies (mapping still reads the originals for point colours).
-            # Images placed in any model count: a survey split into well-registered parts is not murky.
-            stretched = _stage_stretched(src_dir, names, distorted / "stretched")
-            first_stats = attempt.stats
-            try:
-                recs2, names2 = attempt.run(distorted / "database_stretched.db", stretched, distorted, images_dir)
-            except (NoModelError, TooFewRegisteredError):
-                recs2 = None
-            n_before = recs[0].num_reg_images() if recs is not None else 0
-            if recs2 is not None and recs2[0].num_reg_images() > n_before:
-                warnings.append(f"low-contrast images: features were extracted from contrast-stretched copies "
-                                f"({recs2[0].num_reg_images()} registered, {n_before} without)")
-                recs, names = recs2, names2
-                db_used, feature_dir = distorted / "database_stretched.db", stretched
-            else:
-                attempt.stats = first_stats
-        retries: list[dict[str, Any]] = []
-        if cfg.retry_dropped and (recs is None or recs[0].num_reg_images() < len(names)):
-            # No model at all (no initial pair passed COLMAP's thresholds) is where the ladder starts too.
-            largest = max(max(wh) for wh in sizes)
-            recs, db_used = _retry_dropped(recs or [], names, db_used, feature_dir, distorted, attempt, largest,
-                                           retries)  # fmt: skip
-        if not recs or recs[0].num_reg_images() < cfg.min_registered:
-            assert first_error is not None  # a model the first pass accepted is only ever replaced by a larger one
-            if retries:
-                first_error.args = (f"{first_error} (the retry ladder ran "
-                                    f"{', '.join(r['rung'] for r in retries)} and did not help either)",)  # fmt: skip
-            raise first_error
-        rec = recs[0]
-        registered = rec.num_reg_images()
-        reproj = float(rec.compute_mean_reprojection_error())
-        placed = {im.name for im in rec.images.values() if im.has_pose}
-        others = separate_models(_write_models(recs, distorted / "sparse"), placed)
-        t_und = time.perf_counter()
-        _undistort(distorted / "sparse" / "0", src_dir, out, distorted / "_undistort", cfg, cancellation_token)
-        attempt.phases["undistort"] = time.perf_counter() - t_und
 
-    unregistered = [n for n in names if n not in placed]
-    min_matches = RELAXED_MIN_NUM_MATCHES if retries else mapper_options(cfg).min_num_matches
-    dropped = drop_reasons(db_used, names, placed, [(m.index, m.images) for m in others], min_matches)
+def _first_attempt(src_dir: Path, names: list[str], camera_mode: Any, matcher: str, cfg: SfmConfig, token: Any,
+                   skipped: list[tuple[str, str]]) -> _Attempt:
+    """The pass's settings from ``cfg`` (camera model, SIFT threads, image size and feature count), with
+    pycolmap's random seed set."""
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
+
+    pycolmap.set_random_seed(cfg.seed)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = cfg.camera_model
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = cfg.image_threads
+    ext.max_image_size = cfg.max_image_size
+    ext.sift.max_num_features = cfg.max_num_features
+    return _Attempt(src_dir, names, camera_mode, reader, ext, matcher, cfg, token, skipped)
+
+
+@dataclass
+class _Models:
+    """The models the passes built so far (largest first; None: no pass built one) and where they came from."""
+
+    recs: list | None
+    names: list[str]  # the images the models' pass read
+    db: Path  # its database
+    feature_dir: Path  # the folder its features were extracted from
+    first_error: SfmError | None  # why the first pass built no usable model, if it did not
+
+
+def _map_or_stretch(attempt: _Attempt, names: list[str], distorted: Path, images_dir: Path,
+                    warnings: list[str]) -> _Models:
+    """Extract, match and map; when fewer than :data:`RETRY_BELOW_REGISTERED` of the images are placed in any
+    model, again from contrast-stretched copies, whose models are kept when their largest places more."""
+    found = _Models(None, names, distorted / "database.db", attempt.src_dir, None)
+    try:
+        found.recs, found.names = attempt.run(found.db, attempt.src_dir, distorted, images_dir)
+    except (NoModelError, TooFewRegisteredError) as e:
+        found.first_error = e
+    placed_anywhere = sum(r.num_reg_images() for r in found.recs) if found.recs is not None else 0
+    if placed_anywhere >= RETRY_BELOW_REGISTERED * len(found.names):
+        return found
+    # Murky water: SIFT's contrast threshold leaves too few features on a dark, hazy frame. Extract them again
+    # from contrast-stretched copies (mapping still reads the originals for point colours). Images placed in any
+    # model count: a survey split into well-registered parts is not murky.
+    stretched = _stage_stretched(attempt.src_dir, found.names, distorted / "stretched")
+    first_stats = attempt.stats
+    try:
+        recs2, names2 = attempt.run(distorted / "database_stretched.db", stretched, distorted, images_dir)
+    except (NoModelError, TooFewRegisteredError):
+        recs2 = None
+    n_before = found.recs[0].num_reg_images() if found.recs is not None else 0
+    if recs2 is not None and recs2[0].num_reg_images() > n_before:
+        warnings.append(f"low-contrast images: features were extracted from contrast-stretched copies "
+                        f"({recs2[0].num_reg_images()} registered, {n_before} without)")
+        found.recs, found.names = recs2, names2
+        found.db, found.feature_dir = distorted / "database_stretched.db", stretched
+    else:
+        attempt.stats = first_stats
+    return found
+
+
+def _retry_or_fail(found: _Models, attempt: _Attempt, distorted: Path, sizes: set[tuple[int, int]],
+                   cfg: SfmConfig) -> list[dict[str, Any]]:
+    """The retry ladder (:func:`_retry_dropped`, into ``found``) while frames are left out; raises the first
+    pass's error when still no model places ``cfg.min_registered`` images. Returns the rungs that ran."""
+    retries: list[dict[str, Any]] = []
+    if cfg.retry_dropped and (found.recs is None or found.recs[0].num_reg_images() < len(found.names)):
+        # No model at all (no initial pair passed COLMAP's thresholds) is where the ladder starts too.
+        largest = max(max(wh) for wh in sizes)
+        found.recs, found.db = _retry_dropped(found.recs or [], found.names, found.db, found.feature_dir, distorted,
+                                              attempt, largest, retries)  # fmt: skip
+    if not found.recs or found.recs[0].num_reg_images() < cfg.min_registered:
+        first_error = found.first_error
+        assert first_error is not None  # a model the first pass accepted is only ever replaced by a larger one
+        if retries:
+            first_error.args = (f"{first_error} (the retry ladder ran "
+                                f"{', '.join(r['rung'] for r in retries)} and did not help either)",)  # fmt: skip
+        raise first_error
+    return retries
+
+
+def _outcome_warnings(names: list[str], registered: int, retries: list[dict[str, Any]], others: list[SubModel],
+                      skipped: list[tuple[str, str]]) -> list[str]:
+    """What the user should know about the kept model: the retries, a split survey, few registered, skipped
+    files."""
+    warnings = []
     if retries:
         kept = [r["rung"] for r in retries if r["kept"]]
         warnings.append(
@@ -321,21 +395,17 @@ def run_sfm(
         )
     if skipped:
         warnings.append(f"{len(skipped)} file(s) skipped: " + "; ".join(f"{n}: {r}" for n, r in skipped))
-    summary = SfmSummary(
-        registered=registered, total=total, mean_reproj_error_px=reproj, num_points3D=rec.num_points3D(),
-        seconds=time.perf_counter() - t0, matcher=matcher, skipped=skipped, warnings=warnings,
-        unregistered=unregistered, other_models=others, pairs_matched=attempt.stats[0],
-        loop_pairs=attempt.stats[1], phase_seconds={k: round(v, 3) for k, v in attempt.phases.items()},
-        dropped=dropped, retries=retries,
-    )  # fmt: skip
+    return warnings
+
+
+def _log_outcome(s: SfmSummary) -> None:
     log.info("sfm: registered %d/%d, %d points, reprojection error %.3f px, %d pairs (%d loop), %.1f s (%s)",
-             registered, total, summary.num_points3D, reproj, summary.pairs_matched, summary.loop_pairs,
-             summary.seconds, ", ".join(f"{k} {v:.1f}" for k, v in summary.phase_seconds.items()))  # fmt: skip
-    for w in warnings:
+             s.registered, s.total, s.num_points3D, s.mean_reproj_error_px, s.pairs_matched, s.loop_pairs,
+             s.seconds, ", ".join(f"{k} {v:.1f}" for k, v in s.phase_seconds.items()))  # fmt: skip
+    for w in s.warnings:
         log.warning("sfm: %s", w)
-    for d in dropped:
+    for d in s.dropped:
         log.warning("sfm: dropped %s: %s", d.name, d.reason)
-    return summary
 
 
 def _check_config(cfg: SfmConfig) -> None:
@@ -424,7 +494,7 @@ class _Attempt:
 
     def run(self, db_path: Path, feature_dir: Path, distorted: Path, images_dir: Path) -> tuple[list, list[str]]:
         """(the models, largest first; the names that were read); raises NoModelError / TooFewRegisteredError."""
-        import pycolmap
+        import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
         if db_path.exists():
             db_path.unlink()
@@ -566,8 +636,6 @@ def _retry_dropped(
 def _stage_stretched(src_dir: Path, names: list[str], stage: Path) -> Path:
     """Contrast-stretched 8-bit copies of ``names`` (same names) for feature extraction: each channel linearly
     from its ``STRETCH_PERCENTILES`` to [0, 1]."""
-    import numpy as np
-
     stage.mkdir(parents=True, exist_ok=True)
     for n in names:
         img = read_image(src_dir / n)  # [H, W, 3] in [0, 1]
@@ -578,7 +646,7 @@ def _stage_stretched(src_dir: Path, names: list[str], stage: Path) -> Path:
 
 
 def _db_image_names(db_path: Path) -> set[str]:
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -589,7 +657,7 @@ def _db_image_names(db_path: Path) -> set[str]:
 
 def _num_inlier_matches(db_path: Path) -> int:
     """Inlier correspondences over all pairs (``num_verified_image_pairs`` counts 0-inlier pairs too)."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -604,7 +672,7 @@ def _pair_stats(db_path: Path, overlap: int) -> tuple[int, int]:
     Image ids follow the sorted names, so the sequential matcher pairs ids ``d`` apart for ``d <= overlap`` and
     (quadratic overlap) ``d = 2**k``; any other verified pair came from loop detection (or from exhaustive
     matching across the survey)."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -656,7 +724,7 @@ def _name_range(names: list[str]) -> str:
 
 
 def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: Path, *, guided: bool = False) -> None:
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     mopts = pycolmap.FeatureMatchingOptions()
     mopts.num_threads = cfg.num_threads
@@ -682,7 +750,7 @@ def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: 
 
 def _undistort(model_dir: Path, image_dir: Path, out: Path, tmp: Path, cfg: SfmConfig, token: Any) -> None:
     """PINHOLE undistortion into ``out/images`` and ``out/sparse/0`` (MVS leftovers dropped)."""
-    import pycolmap
+    import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), num_threads=cfg.image_threads,
                               cancellation_token=token)  # fmt: skip

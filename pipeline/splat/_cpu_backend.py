@@ -45,7 +45,7 @@ def pin_threading_layer() -> None:
     """Make numba pick OpenMP or workqueue rather than TBB for the kernels (module docstring), unless the user
     chose a layer with ``NUMBA_THREADING_LAYER`` / ``NUMBA_THREADING_LAYER_PRIORITY``. Must run before numba
     starts its thread pool (the first parallel kernel call of the process); later it changes nothing."""
-    import numba
+    import numba  # lazy: numba (~0.4 s) loads with the first kernel call, never at import
 
     if os.environ.get("NUMBA_THREADING_LAYER") or os.environ.get("NUMBA_THREADING_LAYER_PRIORITY"):
         return
@@ -59,7 +59,7 @@ def _kernels():
     global _announced
     if not _announced:
         pin_threading_layer()
-    from pipeline.splat import _cpu_project_kernels, _cpu_raster_kernels
+    from pipeline.splat import _cpu_project_kernels, _cpu_raster_kernels  # lazy: numba, kernels load or compile
 
     if not _announced:
         _announced = True
@@ -70,7 +70,7 @@ def _kernels():
 def _dynamic_schedule(chunk: int = 1):
     """numba's dynamic scheduling for the kernels' parallel loops: a thread that the OS pauses (other jobs share
     our 2 cores) does not hold up the others at the end of a static block."""
-    import numba
+    import numba  # lazy: numba (~0.4 s) loads with the first kernel call, never at import
 
     return numba.parallel_chunksize(chunk)
 
@@ -150,7 +150,7 @@ class _Raster(torch.autograd.Function):
         # means2d [C, N, 2], conics [C, N, 3], opacities [N], features [C, N, F], backgrounds [C, F],
         # radii [C, N, 2] int32, depth_keys [C, N] float64
         _, rk = _kernels()
-        import numba
+        import numba  # lazy: numba (~0.4 s) loads with the first kernel call, never at import
 
         C, N, F = features.shape
         NF = rk.NF

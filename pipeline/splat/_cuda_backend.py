@@ -35,7 +35,7 @@ def rasterize(
     absgrad: bool,
 ) -> tuple[Tensor, Tensor, dict]:
     """gsplat's rasterization, not packed (means2d [C, N, 2] as the other backends), classic 3DGS mode."""
-    from gsplat.rendering import rasterization
+    from gsplat.rendering import rasterization  # lazy: its CUDA extension builds on first use
 
     img, alpha, info = rasterization(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,

@@ -45,80 +45,90 @@ class DensifyEvent:
     n_gaussians: int = 0
 
 
+class _Fixes:
+    """What ``_Strategy`` changes of gsplat's ``DefaultStrategy`` (module docstring), mixed in before it: its
+    ``super()`` is DefaultStrategy. The class itself is made in :func:`_make_strategy`, where gsplat is imported."""
+
+    max_gaussians: int  # growth stops at this many Gaussians (0 = no cap)
+    reset_until: int  # no opacity reset at or after this iteration (0 = no limit)
+
+    def step_post_backward(
+        self,
+        params: nn.ParameterDict,
+        optimizers: dict[str, torch.optim.Optimizer],
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+        packed: bool = False,
+    ) -> DensifyEvent | None:
+        """DefaultStrategy.step_post_backward with the reset condition fixed; returns what it did."""
+        if step >= self.refine_stop_iter:
+            return None
+        self._update_state(params, state, info, packed=packed)
+        event = None
+        if (
+            step > self.refine_start_iter
+            and step % self.refine_every == 0
+            and step % self.reset_every >= self.pause_refine_after_reset
+        ):
+            n_dupli, n_split = self._grow_gs(params, optimizers, state, step)
+            n_prune = self._prune_gs(params, optimizers, state, step)
+            state["grad2d"].zero_()
+            state["count"].zero_()
+            event = DensifyEvent(step, int(n_dupli), int(n_split), int(n_prune))
+        if step % self.reset_every == 0 and step > 0 and (self.reset_until <= 0 or step < self.reset_until):
+            from gsplat.strategy.ops import reset_opa  # lazy: gsplat loads with the strategy (_make_strategy)
+
+            reset_opa(params=params, optimizers=optimizers, state=state, value=self.prune_opa * 2.0)
+            event = event or DensifyEvent(step)
+            event.opacity_reset = True
+        if event is not None:
+            event.n_gaussians = len(params["means"])
+        return event
+
+    @torch.no_grad()
+    def _update_state(self, params, state, info, packed=False):  # type: ignore[no-untyped-def]
+        """DefaultStrategy._update_state for one camera, as masked adds: the same sums (a Gaussian gets its
+        own gradient norm or exactly 0), without the row gathers and index_add_ of the general path
+        (~3 of the ~5 ms its bookkeeping took a step at 100k Gaussians). Other cases: gsplat's."""
+        radii = info.get("radii")
+        if packed or self.absgrad or self.refine_scale2d_stop_iter > 0 or radii is None or radii.shape[0] != 1:
+            return super()._update_state(params, state, info, packed=packed)  # type: ignore[misc]
+        n = len(params["means"])
+        grad = info[self.key_for_gradient].grad[0]  # [N, 2]
+        scale = grad.new_tensor([info["width"] / 2.0 * info["n_cameras"], info["height"] / 2.0 * info["n_cameras"]])
+        sel = (radii[0] > 0.0).all(dim=-1)  # [N]
+        if state["grad2d"] is None:
+            state["grad2d"] = torch.zeros(n, device=grad.device)
+        if state["count"] is None:
+            state["count"] = torch.zeros(n, device=grad.device)
+        state["grad2d"].add_(torch.where(sel, (grad * scale).norm(dim=-1), 0.0))
+        state["count"].add_(sel.to(torch.float32))
+
+    @torch.no_grad()
+    def _grow_gs(self, params, optimizers, state, step):  # type: ignore[no-untyped-def]
+        """DefaultStrategy._grow_gs, with growth held to ``max_gaussians``."""
+        if self.max_gaussians > 0:
+            room = self.max_gaussians - len(params["means"])
+            if room <= 0:
+                return 0, 0
+            grads = state["grad2d"] / state["count"].clamp_min(1)  # [N]
+            if int((grads > self.grow_grad2d).sum()) > room:
+                # each clone or split adds one Gaussian: keep the `room` largest gradients
+                keep = torch.zeros_like(grads, dtype=torch.bool)
+                keep[grads.topk(room).indices] = True
+                state["grad2d"] = torch.where(keep, state["grad2d"], torch.zeros_like(grads))
+        return super()._grow_gs(params, optimizers, state, step)  # type: ignore[misc]
+
+
 def _make_strategy(cfg: DensifyConfig) -> Any:
-    """A configured ``_Strategy`` (gsplat is imported here, lazily)."""
-    from gsplat.strategy import DefaultStrategy
-    from gsplat.strategy.ops import reset_opa
+    """A configured ``_Strategy``: gsplat's DefaultStrategy with :class:`_Fixes`."""
+    from gsplat.strategy import DefaultStrategy  # lazy: `import pipeline` needs only numpy and torch
 
     @dataclass
-    class _Strategy(DefaultStrategy):
+    class _Strategy(_Fixes, DefaultStrategy):
         max_gaussians: int = 0
-        reset_until: int = 0  # no opacity reset at or after this iteration (0 = no limit)
-
-        def step_post_backward(  # type: ignore[override]
-            self,
-            params: nn.ParameterDict,
-            optimizers: dict[str, torch.optim.Optimizer],
-            state: dict[str, Any],
-            step: int,
-            info: dict[str, Any],
-            packed: bool = False,
-        ) -> DensifyEvent | None:
-            """DefaultStrategy.step_post_backward with the reset condition fixed; returns what it did."""
-            if step >= self.refine_stop_iter:
-                return None
-            self._update_state(params, state, info, packed=packed)
-            event = None
-            if (
-                step > self.refine_start_iter
-                and step % self.refine_every == 0
-                and step % self.reset_every >= self.pause_refine_after_reset
-            ):
-                n_dupli, n_split = self._grow_gs(params, optimizers, state, step)
-                n_prune = self._prune_gs(params, optimizers, state, step)
-                state["grad2d"].zero_()
-                state["count"].zero_()
-                event = DensifyEvent(step, int(n_dupli), int(n_split), int(n_prune))
-            if step % self.reset_every == 0 and step > 0 and (self.reset_until <= 0 or step < self.reset_until):
-                reset_opa(params=params, optimizers=optimizers, state=state, value=self.prune_opa * 2.0)
-                event = event or DensifyEvent(step)
-                event.opacity_reset = True
-            if event is not None:
-                event.n_gaussians = len(params["means"])
-            return event
-
-        @torch.no_grad()
-        def _update_state(self, params, state, info, packed=False):  # type: ignore[no-untyped-def]
-            """DefaultStrategy._update_state for one camera, as masked adds: the same sums (a Gaussian gets its
-            own gradient norm or exactly 0), without the row gathers and index_add_ of the general path
-            (~3 of the ~5 ms its bookkeeping took a step at 100k Gaussians). Other cases: gsplat's."""
-            radii = info.get("radii")
-            if packed or self.absgrad or self.refine_scale2d_stop_iter > 0 or radii is None or radii.shape[0] != 1:
-                return super()._update_state(params, state, info, packed=packed)
-            n = len(params["means"])
-            grad = info[self.key_for_gradient].grad[0]  # [N, 2]
-            scale = grad.new_tensor([info["width"] / 2.0 * info["n_cameras"], info["height"] / 2.0 * info["n_cameras"]])
-            sel = (radii[0] > 0.0).all(dim=-1)  # [N]
-            if state["grad2d"] is None:
-                state["grad2d"] = torch.zeros(n, device=grad.device)
-            if state["count"] is None:
-                state["count"] = torch.zeros(n, device=grad.device)
-            state["grad2d"].add_(torch.where(sel, (grad * scale).norm(dim=-1), 0.0))
-            state["count"].add_(sel.to(torch.float32))
-
-        @torch.no_grad()
-        def _grow_gs(self, params, optimizers, state, step):  # type: ignore[no-untyped-def]
-            if self.max_gaussians > 0:
-                room = self.max_gaussians - len(params["means"])
-                if room <= 0:
-                    return 0, 0
-                grads = state["grad2d"] / state["count"].clamp_min(1)  # [N]
-                if int((grads > self.grow_grad2d).sum()) > room:
-                    # each clone or split adds one Gaussian: keep the `room` largest gradients
-                    keep = torch.zeros_like(grads, dtype=torch.bool)
-                    keep[grads.topk(room).indices] = True
-                    state["grad2d"] = torch.where(keep, state["grad2d"], torch.zeros_like(grads))
-            return super()._grow_gs(params, optimizers, state, step)
+        reset_until: int = 0
 
     return _Strategy(
         prune_opa=cfg.prune_opacity,

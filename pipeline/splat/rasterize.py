@@ -17,6 +17,8 @@ import logging
 import torch
 from torch import Tensor
 
+from pipeline.splat import _cpu_backend, _cuda_backend, _torch_ref
+
 logger = logging.getLogger(__name__)
 
 RENDER_MODES = ("RGB", "RGB+ED", "ED")
@@ -70,19 +72,12 @@ def rasterize(
     >>> img.shape, alpha.shape, round(float(alpha.max()), 2)  # peak 0.9 * exp(-sigma) half a pixel off the mean
     (torch.Size([1, 24, 32, 3]), torch.Size([1, 24, 32, 1]), 0.82)
     """
-    shaped = colors  # what the checks read: with sh_rest, a free view shaped as all the coefficients
-    if sh_rest is not None:
-        _check_sh_rest(colors, sh_rest, sh_degree)
-        shaped = colors.expand(-1, 1 + sh_rest.shape[1], -1)
-    _check_inputs(means, quats, scales, opacities, shaped, viewmats, Ks, width, height, sh_degree, backgrounds)
-    if render_mode not in RENDER_MODES:
-        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    _check_call(means, quats, scales, opacities, colors, sh_rest, viewmats, Ks, width, height, sh_degree, backgrounds,
+                render_mode)
     name = _resolve_backend(backend, means)
     if sh_rest is not None and name != "cpu":  # the other backends read the coefficients whole
         colors, sh_rest = torch.cat([colors, sh_rest], dim=1), None
     if name == "cuda":
-        from pipeline.splat import _cuda_backend
-
         return _cuda_backend.rasterize(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
@@ -92,10 +87,7 @@ def rasterize(
     with_colors = render_mode in ("RGB", "RGB+ED")
     with_depth = render_mode in ("ED", "RGB+ED")
     bg = _feature_backgrounds(backgrounds, C, with_colors, with_depth, means)  # [C, F] or None
-    if name == "cpu":
-        from pipeline.splat import _cpu_backend as impl
-    else:
-        from pipeline.splat import _torch_ref as impl
+    impl = _cpu_backend if name == "cpu" else _torch_ref
     apart = {} if sh_rest is None else {"sh_rest": sh_rest}  # only the cpu backend keeps one (concatenated above)
     img, alpha, info = impl.render(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
@@ -104,6 +96,29 @@ def rasterize(
     )  # fmt: skip
     if with_depth:  # expected depth = sum(w z) / sum(w), as gsplat's "ED"
         img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp_min(1e-10)], dim=-1)
+    _complete_info(info, opacities, C, width, height, impl.TILE_SIZE, name)
+    return img, alpha, info
+
+
+def _check_call(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, sh_rest: Tensor | None,
+    viewmats: Tensor, Ks: Tensor, width: int, height: int, sh_degree: int | None, backgrounds: Tensor | None,
+    render_mode: str,
+) -> None:
+    """Raise ValueError for the first bad argument of :func:`rasterize` (with ``sh_rest``, the coefficients are
+    checked as ``colors`` and ``sh_rest`` together)."""
+    shaped = colors  # what the checks read: with sh_rest, a free view shaped as all the coefficients
+    if sh_rest is not None:
+        _check_sh_rest(colors, sh_rest, sh_degree)
+        shaped = colors.expand(-1, 1 + sh_rest.shape[1], -1)
+    _check_inputs(means, quats, scales, opacities, shaped, viewmats, Ks, width, height, sh_degree, backgrounds)
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+
+
+def _complete_info(info: dict, opacities: Tensor, C: int, width: int, height: int, tile_size: int,
+                   backend: str) -> None:
+    """Fill ``info`` with the rest of gsplat's keys (unpacked), and make ``means2d`` keep its gradient."""
     means2d = info["means2d"]
     if means2d.requires_grad:
         means2d.retain_grad()
@@ -115,10 +130,9 @@ def rasterize(
         width=width,
         height=height,
         n_cameras=C,
-        tile_size=impl.TILE_SIZE,
-        backend=name,
+        tile_size=tile_size,
+        backend=backend,
     )
-    return img, alpha, info
 
 
 def _resolve_backend(backend: str, means: Tensor) -> str:

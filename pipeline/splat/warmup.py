@@ -13,14 +13,14 @@ from __future__ import annotations
 import logging
 import time
 
+from pipeline.splat.random_scene import random_scene
+from pipeline.splat.rasterize import rasterize
+
 log = logging.getLogger(__name__)
 
 
 def compile_kernels(width: int = 64, height: int = 48, n: int = 500) -> dict[str, float]:
     """Call every rasterizer kernel once (forward and backward); returns seconds per call."""
-    from pipeline.splat.random_scene import random_scene
-    from pipeline.splat.rasterize import rasterize
-
     seconds = {}
     for sh_degree, mode in ((None, "RGB"), (3, "RGB+ED")):
         s = random_scene(n, width, height, seed=0, sh=sh_degree is not None)

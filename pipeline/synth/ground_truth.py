@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.ingest.video import is_video
+from pipeline.scene.colmap import lens_cameras
 from pipeline.scene.images import read_image, resize_area_to
 from pipeline.scene.loader import load_scene, load_view_image
 from pipeline.scene.records import LensCamera, Scene, View
@@ -69,8 +71,6 @@ class GroundTruth:
     def original_camera(self, name: str) -> LensCamera:
         """The true camera of view ``name`` as recorded (sparse_gt/): RADIAL for a distorted scene, else
         PINHOLE; params in COLMAP order."""
-        from pipeline.scene.colmap import lens_cameras
-
         return lens_cameras(self.original_root / "sparse_gt")[self.file(name)]
 
     def clean_original(self, name: str) -> np.ndarray:
@@ -148,8 +148,6 @@ def find_ground_truth(source: str | Path | None, explicit: str | Path | None = N
     """The ground-truth scene folder of a job: ``explicit`` if given (it must be a generated scene), else the
     folder the source sits in when the source is that generated scene's ``images/`` or a video in it (a generated
     video's truth is written beside it), else None."""
-    from pipeline.ingest.video import is_video
-
     if explicit:
         if not is_generated_scene(explicit):
             raise GroundTruthError(f"ground truth {explicit} is not a generated scene folder ({TRUE_WATER_FILE} "

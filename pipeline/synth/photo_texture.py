@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.scene.images import read_image
+
 F32 = torch.float32
 
 
@@ -64,8 +66,6 @@ PhotoBox = tuple[str, float, float, float, float]  # (file stem, top, bottom, le
 def load_photos(folder: Path, photos: tuple[PhotoBox, ...], albedo_scale: float, contrast: float) -> PhotoSet:
     """Read ``<folder>/<stem>.jpg`` for each box, keep the seabed box (open water, divers and captions left
     out) and apply the darkening/contrast adjustment. Raises :class:`TextureFolderError`."""
-    from pipeline.scene.images import read_image  # OpenImageIO loads only when photos are read
-
     folder = Path(folder)
     if not folder.is_dir():
         raise TextureFolderError(

@@ -159,14 +159,23 @@ def march(terrain: Terrain, o: torch.Tensor, d: torch.Tensor, *, fine_steps: int
     """
     if o.shape != d.shape or o.ndim != 2 or o.shape[1] != 3:
         raise ValueError(f"expected o, d [M, 3], got {tuple(o.shape)} and {tuple(d.shape)}")
+    o, d = o.to(torch.float32), d.to(torch.float32)
+    t_out = torch.full((o.shape[0],), math.inf, dtype=F64)
+    hits = _bracket_crossings(terrain, o, d, fine_steps, coarse_max, coarse_batch)
+    if hits is not None:
+        ids, lo, hi = hits
+        t_out[ids] = _refine_crossings(terrain, o[ids].to(F64), d[ids].to(F64), lo.to(F64), hi.to(F64), bisections)
+    return t_out
+
+
+def _bracket_crossings(terrain: Terrain, o: torch.Tensor, d: torch.Tensor, fine_steps: int, coarse_max: float,
+                       coarse_batch: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """March float32 rays o, d [M, 3] coarse then fine (:func:`march`): (the rays that hit [H], a distance above
+    the surface [H], one at or below it [H]; float32), or None when no ray pointed down."""
     f32 = torch.float32
-    n, sp = terrain.size, terrain.spacing
-    o, d = o.to(f32), d.to(f32)
-    m = o.shape[0]
-    t_out = torch.full((m,), math.inf, dtype=F64)
     h_lo, h_hi = terrain.h_min - 1e-3, terrain.h_max + 1e-3
     dxy = torch.linalg.norm(d[:, :2], dim=-1)
-    reach = 2 * (terrain.dilate_cells - 1) * sp  # horizontal length of a coarse segment (see above)
+    reach = 2 * (terrain.dilate_cells - 1) * terrain.spacing  # horizontal length of a coarse segment (march)
     seg = (reach / dxy.clamp(min=1e-9)).clamp(max=coarse_max)  # [M] coarse segment length along the ray
     idx = (d[:, 2] < -1e-9).nonzero().squeeze(1)
     t_cur = ((o[idx, 2] - h_hi) / -d[idx, 2]).clamp(min=0)
@@ -176,41 +185,59 @@ def march(terrain: Terrain, o: torch.Tensor, d: torch.Tensor, *, fine_steps: int
     fk = torch.arange(1, fine_steps + 1, dtype=f32) / fine_steps
     while idx.numel():
         oi, di, si = o[idx], d[idx], seg[idx]
-        # Coarse: which of the next `coarse_batch` segments may cross?
-        ta = t_cur[:, None] + si[:, None] * ks  # [A, K] segment starts
-        tb = torch.minimum(ta + si[:, None], t_end[:, None])
-        tm = 0.5 * (ta + tb)
-        bound = bilinear(terrain.hmax_q, n, sp, oi[:, None, 0] + tm * di[:, None, 0],
-                         oi[:, None, 1] + tm * di[:, None, 1])
-        maybe = (oi[:, None, 2] + tb * di[:, None, 2] <= bound) | (tb >= t_end[:, None])
-        has = maybe.any(1)
-        first = maybe.to(torch.int8).argmax(1)
+        ta, tb, has, first = _coarse_candidates(terrain, oi, di, si, t_cur, t_end, ks)
         t_cur = torch.where(has, t_cur, ta[:, -1] + si)  # no candidate: move on by the whole batch
         # Fine: sample the first candidate segment.
         sel = has.nonzero().squeeze(1)
         found = torch.zeros_like(has)
         if sel.numel():
             a, b = ta[sel, first[sel]], tb[sel, first[sel]]
-            tf = a[:, None] + (b - a)[:, None] * fk  # [S, F]
-            os_, ds_ = oi[sel], di[sel]
-            g = (os_[:, None, 2] + tf * ds_[:, None, 2]) - bilinear(
-                terrain.height_q, n, sp, os_[:, None, 0] + tf * ds_[:, None, 0], os_[:, None, 1] + tf * ds_[:, None, 1])
-            below = g <= 0
-            hit = below.any(1)
-            k = below.to(torch.int8).argmax(1)
-            prev = torch.where(k > 0, tf.gather(1, (k - 1).clamp(min=0)[:, None])[:, 0], a)
-            lo_list.append(prev[hit])
-            hi_list.append(tf.gather(1, k[:, None])[:, 0][hit])
+            hit, above, below = _fine_crossing(terrain, oi[sel], di[sel], a, b, fk)
+            lo_list.append(above[hit])
+            hi_list.append(below[hit])
             id_list.append(idx[sel[hit]])
             found[sel[hit]] = True
             t_cur[sel[~hit]] = b[~hit]
         keep = ~found
         idx, t_cur, t_end = idx[keep], t_cur[keep], t_end[keep]
     if not id_list:
-        return t_out
-    ids = torch.cat(id_list)
-    lo, hi = torch.cat(lo_list).to(F64), torch.cat(hi_list).to(F64)
-    oi, di = o[ids].to(F64), d[ids].to(F64)
+        return None
+    return torch.cat(id_list), torch.cat(lo_list), torch.cat(hi_list)
+
+
+def _coarse_candidates(terrain: Terrain, oi: torch.Tensor, di: torch.Tensor, si: torch.Tensor, t_cur: torch.Tensor,
+                       t_end: torch.Tensor, ks: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Which of the next K = len(ks) coarse segments (length si [A]) from t_cur [A] of rays oi, di [A, 3] may cross:
+    (segment starts [A, K], ends [A, K], whether any may [A], the first that may [A])."""
+    n, sp = terrain.size, terrain.spacing
+    ta = t_cur[:, None] + si[:, None] * ks  # [A, K] segment starts
+    tb = torch.minimum(ta + si[:, None], t_end[:, None])
+    tm = 0.5 * (ta + tb)
+    bound = bilinear(terrain.hmax_q, n, sp, oi[:, None, 0] + tm * di[:, None, 0],
+                     oi[:, None, 1] + tm * di[:, None, 1])
+    maybe = (oi[:, None, 2] + tb * di[:, None, 2] <= bound) | (tb >= t_end[:, None])
+    return ta, tb, maybe.any(1), maybe.to(torch.int8).argmax(1)
+
+
+def _fine_crossing(terrain: Terrain, os_: torch.Tensor, ds_: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
+                   fk: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Sample the segments [a, b] [S] of rays os_, ds_ [S, 3] at the fractions fk [F]: (whether a sample is at or
+    below the surface [S], the sample before the first such (or a) [S], that first sample [S])."""
+    n, sp = terrain.size, terrain.spacing
+    tf = a[:, None] + (b - a)[:, None] * fk  # [S, F]
+    g = (os_[:, None, 2] + tf * ds_[:, None, 2]) - bilinear(
+        terrain.height_q, n, sp, os_[:, None, 0] + tf * ds_[:, None, 0], os_[:, None, 1] + tf * ds_[:, None, 1])
+    below = g <= 0
+    k = below.to(torch.int8).argmax(1)
+    prev = torch.where(k > 0, tf.gather(1, (k - 1).clamp(min=0)[:, None])[:, 0], a)
+    return below.any(1), prev, tf.gather(1, k[:, None])[:, 0]
+
+
+def _refine_crossings(terrain: Terrain, oi: torch.Tensor, di: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+                      bisections: int) -> torch.Tensor:
+    """The crossing of rays oi, di [H, 3] between lo (above the surface) and hi (at or below) [H], float64:
+    ``bisections`` halvings of the bracket, then a secant step. → t [H]"""
+    n, sp = terrain.size, terrain.spacing
 
     def gap(t: torch.Tensor) -> torch.Tensor:  # height of the ray above the surface, float64
         p = oi + t[:, None] * di
@@ -224,8 +251,7 @@ def march(terrain: Terrain, o: torch.Tensor, d: torch.Tensor, *, fine_steps: int
     g_lo, g_hi = gap(lo), gap(hi)
     denom = g_lo - g_hi
     frac = torch.where(denom > 0, g_lo / denom.clamp(min=1e-12), torch.full_like(lo, 0.5)).clamp(0, 1)
-    t_out[ids] = lo + (hi - lo) * frac
-    return t_out
+    return lo + (hi - lo) * frac
 
 
 def normals(terrain: Terrain, xy: torch.Tensor) -> torch.Tensor:

@@ -42,6 +42,7 @@ import torch
 from pipeline.config import SynthConfig, to_dict
 from pipeline.scene.colmap import rotmat_to_qvec
 from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
+from pipeline.scene.images import write_image
 from pipeline.scene.records import Camera, LensCamera, View
 from pipeline.synth.lens import (
     distortion_pair,
@@ -259,8 +260,6 @@ def _depth_only(sv: SynthView) -> SynthView:
 
 def write_views(out: Path, views: list[SynthView]) -> None:
     """Each view's images/ and clean/ (8-bit PNG named as the view) and depth/ (float32 .npy by its stem)."""
-    from pipeline.scene.images import write_image  # OpenImageIO loads only when files are written
-
     for sub in ("images", "clean", "depth"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     for sv in views:

@@ -16,14 +16,16 @@ import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.config import SynthConfig
-
-if TYPE_CHECKING:  # the renderer (and torch) load only when frames are rendered: encode_video needs neither
-    from pipeline.synth.procedural import SynthView
+from pipeline.scene.records import View
+from pipeline.synth.lens import pixel_ray_factor
+from pipeline.synth.path import look_rotation
+from pipeline.synth.procedural import NO_DISTORTION, SynthView, build_world, make_camera, render, to_u8, water_image
+from pipeline.synth.video_truth import VideoTruthWriter, frame_name, frame_stem
+from pipeline.synth.water import WATER_PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +42,6 @@ class VideoSynthConfig:
 
 def transect_poses(cfg: VideoSynthConfig) -> list[tuple[np.ndarray, np.ndarray]]:
     """(R cam_from_world, centre) per frame along the module docstring's transect."""
-    from pipeline.synth.path import look_rotation
-
     length = cfg.step * (cfg.frames - 1)
     poses = []
     for i in range(cfg.frames):
@@ -58,12 +58,6 @@ def transect_poses(cfg: VideoSynthConfig) -> list[tuple[np.ndarray, np.ndarray]]
 def render_transect(cfg: VideoSynthConfig, stem: str = "frame") -> Iterator[SynthView]:
     """The frames along the transect, one at a time: view ``<stem>_<index, 6 digits>.png``, J, depth and the
     underwater image (float, unquantised; :func:`~pipeline.synth.procedural.to_u8` gives what is encoded)."""
-    from pipeline.scene.records import View
-    from pipeline.synth.lens import pixel_ray_factor
-    from pipeline.synth.procedural import NO_DISTORTION, SynthView, build_world, make_camera, render, water_image
-    from pipeline.synth.video_truth import frame_name
-    from pipeline.synth.water import WATER_PRESETS
-
     scene = cfg.scene
     world, cam = build_world(scene), make_camera(scene)
     ray = pixel_ray_factor(cam, NO_DISTORTION)
@@ -76,7 +70,7 @@ def render_transect(cfg: VideoSynthConfig, stem: str = "frame") -> Iterator[Synt
 
 def encode_video(frames: Iterable[np.ndarray], path: str | Path, fps: int, codec: str = "auto") -> Path:
     """Encode uint8 RGB frames [H, W, 3] (even H and W) to ``path`` (MP4 / MOV by its extension); returns it."""
-    import av
+    import av  # lazy: PyAV loads FFmpeg only when a video is decoded or encoded
 
     if codec == "auto":
         codec = "libx264" if "libx264" in av.codecs_available else "mpeg4"
@@ -111,9 +105,6 @@ def encode_video(frames: Iterable[np.ndarray], path: str | Path, fps: int, codec
 def generate_video(cfg: VideoSynthConfig, path: str | Path, truth: bool = False) -> Path:
     """Render the transect and encode it to ``path``; with ``truth``, also write each frame's truth into the
     video's folder as it is rendered (:mod:`.video_truth`). The video is the same either way."""
-    from pipeline.synth.procedural import to_u8
-    from pipeline.synth.video_truth import VideoTruthWriter, frame_stem
-
     path = Path(path)
     frames = render_transect(cfg, frame_stem(path))
     writer = VideoTruthWriter(path.parent, cfg) if truth else None

@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.config import to_dict
+from pipeline.ingest.intake import safe_name
+from pipeline.ingest.video import INDEX_DIGITS
 from pipeline.scene.records import View
 from pipeline.synth.procedural import NO_DISTORTION, SynthView, lens_and_space_meta, write_colmap_text, write_views
 from pipeline.synth.water import TRUE_WATER_FILE, WATER_PRESETS
@@ -40,15 +42,11 @@ log = logging.getLogger(__name__)
 def frame_stem(video: str | Path) -> str:
     """The stem of the frames' truth files: the prefix ingest gives the keyframes of ``video`` when the video is
     the job's source or sits at the top of the source folder (``pipeline.ingest.intake.safe_name``)."""
-    from pipeline.ingest.intake import safe_name
-
     return Path(safe_name(Path(Path(video).name))).stem
 
 
 def frame_name(stem: str, index: int) -> str:
     """Frame ``index``'s truth file name; the same digits as ingest's keyframe names, so the stems agree."""
-    from pipeline.ingest.video import INDEX_DIGITS
-
     return f"{stem}_{index:0{INDEX_DIGITS}d}.png"
 
 

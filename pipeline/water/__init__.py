@@ -13,7 +13,6 @@ Importing this package loads no weights and touches no files; the shipped classi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from pipeline.water.classifier import WaterClassifier, load_classifier
 from pipeline.water.controller import (
@@ -26,9 +25,8 @@ from pipeline.water.controller import (
     water_index,
 )
 from pipeline.water.decision import WaterDecision, classify
-
-if TYPE_CHECKING:
-    from pipeline.water.training import ClassifierTrainConfig
+from pipeline.water.training import ClassifierTrainConfig
+from pipeline.water.training import train_classifier as _train
 
 __all__ = [
     "WATER_TYPES",
@@ -51,6 +49,4 @@ def train_classifier(out_path: str | Path, seed: int = 0, cfg: ClassifierTrainCo
 
     The ``dualphys train-classifier`` entry point. See :func:`pipeline.water.training.train_classifier`.
     """
-    from pipeline.water.training import train_classifier as _train  # renders scenes: keep it out of the import path
-
     return _train(out_path, seed=seed, cfg=cfg)

@@ -8,7 +8,10 @@ from pathlib import Path
 from typing import TypeVar
 
 from pipeline.job.layout import JobLayout
+from pipeline.job.markers import atomic_write_json
 from pipeline.job.options import JobOptions, StageContext
+from pipeline.scene.images import read_image
+from pipeline.water import classify
 
 T = TypeVar("T")
 
@@ -21,10 +24,6 @@ def classify_pick(items: Sequence[T]) -> list[T]:
 
 
 def stage_classify(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
-    from pipeline.job.markers import atomic_write_json
-    from pipeline.scene.images import read_image
-    from pipeline.water import classify
-
     layout = JobLayout(job)
     names = sorted(p for p in layout.images.iterdir() if p.is_file())
     decision = classify([read_image(p) for p in classify_pick(names)]).to_dict()
