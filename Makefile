@@ -27,11 +27,11 @@ demo: install
 	$(BIN)/dualphys demo --out demo-out
 
 test: install
-	$(BIN)/ruff check pipeline service worker tests bench
+	$(BIN)/ruff check pipeline service worker cli tests bench
 	$(BIN)/python -m pytest -q -n 2
 
 lint: install
-	$(BIN)/ruff check pipeline service worker tests bench
+	$(BIN)/ruff check pipeline service worker cli tests bench
 
 bench: install
 	$(BIN)/python bench/raster.py

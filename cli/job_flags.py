@@ -1,5 +1,5 @@
 """`dualphys run`'s job flags, built from :class:`pipeline.job.options.JobOptions` as the API's form fields are
-(service/options.py): each flag's default and type come from its field, and the parsed flags go back into a
+(service/jobs/options.py): each flag's default and type come from its field, and the parsed flags go back into a
 ``JobOptions`` by field name. Torch-free (the client install builds this parser too).
 
 What the command line adds: which fields are flags and their spelling (``restore_format`` is ``--format``), the
