@@ -36,7 +36,7 @@ def stage_set(spec: str, tmp: Path) -> Path:
 
 
 def main() -> None:
-    from pipeline.config import SfmConfig
+    from pipeline.sfm.config import SfmConfig
     from pipeline.sfm.recipe import SfmError, run_sfm
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -50,7 +50,7 @@ def pose_errors(model_dir: Path, gt_dir: Path) -> dict[str, float]:
 
 
 def main() -> None:
-    from pipeline.config import SfmConfig
+    from pipeline.sfm.config import SfmConfig
     from pipeline.sfm.recipe import run_sfm
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -108,9 +108,10 @@ def main() -> None:
 
     import torch
 
-    from pipeline.config import SfmConfig, SynthConfig
+    from pipeline.config import SynthConfig
     from pipeline.ingest.intake import ingest
     from pipeline.job.layout import JobLayout
+    from pipeline.sfm.config import SfmConfig
     from pipeline.sfm.recipe import run_sfm
     from pipeline.synth.video import VideoSynthConfig, generate_video
 

@@ -20,7 +20,7 @@ from importlib import resources
 from pathlib import Path
 
 from cli.job_flags import job_options
-from pipeline.config import SfmConfig, SynthConfig
+from pipeline.config import SynthConfig
 from pipeline.evaluate.ablate import AblationConfig, format_table, run_ablation, select_rows
 from pipeline.export.rerender import RenderError, render_job
 from pipeline.job.layout import JobLayout
@@ -33,6 +33,7 @@ from pipeline.ops.ssim_cpu import compile_ssim_kernels
 from pipeline.restore.warmup import compile_restore_kernels
 from pipeline.scene.align import align_to_reference
 from pipeline.scene.loader import SceneLayoutError, load_scene
+from pipeline.sfm.config import SfmConfig
 from pipeline.sfm.recipe import SfmError, run_sfm
 from pipeline.splat.warmup import compile_kernels
 from pipeline.synth.defocus import defocus_scene

@@ -1,4 +1,7 @@
-"""Typed configs, one dataclass per concern, with named presets.
+"""The configs several pipeline packages read, with named presets: training (``TrainConfig`` and its parts
+``DensifyConfig``, ``MediumConfig``) and the generated scenes (``SynthConfig``). A config that one package reads
+sits beside the code it configures (``pipeline.sfm.config.SfmConfig``, ``pipeline.ingest.intake.IngestConfig``,
+``pipeline.train.probe.ProbeConfig``, ...).
 
 Science configs are plain dataclasses (no pydantic at this layer); each field's comment is its documentation.
 The training configs are frozen: a job's is resolved once (``pipeline.train.resolve``) and every variant of it
@@ -14,7 +17,6 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
 WaterPreset = Literal["none", "clear", "medium", "turbid"]
-Matcher = Literal["auto", "exhaustive", "sequential"]
 
 
 @dataclass
@@ -41,31 +43,6 @@ class SynthConfig:
     # "srgb": the water acts on J as written (8-bit-style values); "linear": on sRGB-decoded J, re-encoded after
     water_space: Literal["srgb", "linear"] = "srgb"
     max_rays_per_view: int = 4_000_000  # supersample is lowered until width·height·s² fits (large sizes)
-
-
-@dataclass
-class SfmConfig:
-    """The pycolmap SfM recipe (``pipeline.sfm.recipe``)."""
-
-    matcher: Matcher = "auto"  # auto: see pipeline.sfm.recipe.choose_matcher for the rule
-    sequential_overlap: int = 10  # neighbours matched per frame in sequential mode (plus quadratic jumps)
-    # Sequential mode also matches loop candidates from a vocabulary tree built from the survey's own features
-    # (pipeline.sfm.loops), so lines that revisit the seabed are tied together.
-    loop_detection: bool = True
-    exhaustive_max_images: int = 60  # auto uses exhaustive up to this many images
-    max_image_size: int = 1600  # SIFT works on images downscaled to this longest side
-    max_num_features: int = 8192
-    camera_model: str = "SIMPLE_RADIAL"  # model refined by bundle adjustment before undistortion
-    single_camera: bool = True  # one shared camera for the whole set (one ROV camera)
-    num_threads: int = 1  # matching and mapping on one thread: SfM repeats bit for bit (2 threads moved the model)
-    # Feature extraction and undistortion treat each image alone (ids are assigned before, in name order), so
-    # their threads cannot change the result (the model's files compared byte for byte): -1 = all cores.
-    image_threads: int = -1
-    seed: int = 0
-    min_registered: int = 3  # fewer registered images than this is an error
-    # Frames left out of the kept model: try the retry ladder (relaxed mapper thresholds on the kept model, a relaxed
-    # remap, more features with guided matching; pipeline.sfm.recipe._retry_dropped) before reporting them dropped.
-    retry_dropped: bool = True
 
 
 C = TypeVar("C")
@@ -286,5 +263,5 @@ def train_preset(name: str) -> TrainConfig:
         raise ValueError(f"unknown training preset {name!r}; choose from {sorted(TRAIN_PRESETS)}")
     return from_dict(TrainConfig, to_dict(TRAIN_PRESETS[name]))
 
-__all__ = ["DensifyConfig", "MediumConfig", "SfmConfig", "SynthConfig", "TRAIN_PRESETS", "TrainConfig", "from_dict",
+__all__ = ["DensifyConfig", "MediumConfig", "SynthConfig", "TRAIN_PRESETS", "TrainConfig", "from_dict",
            "medium_densify", "rescheduled", "scaled_train_config", "to_dict", "train_preset"]

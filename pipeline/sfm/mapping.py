@@ -11,7 +11,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from pipeline.config import SfmConfig
+from pipeline.sfm.config import SfmConfig
 
 log = logging.getLogger(__name__)
 

@@ -40,7 +40,6 @@ from typing import Any, Literal
 
 import numpy as np
 
-from pipeline.config import SfmConfig
 from pipeline.scene.colmap import quiet_pycolmap
 from pipeline.scene.images import (
     IMAGE_EXTENSIONS,
@@ -51,6 +50,7 @@ from pipeline.scene.images import (
     read_image,
     write_image,
 )
+from pipeline.sfm.config import SfmConfig
 from pipeline.sfm.dropped import DroppedFrame, drop_reasons
 from pipeline.sfm.loops import LOOP_NUM_IMAGES, LOOP_PERIOD, build_vocab_tree
 from pipeline.sfm.mapping import MIN_MODEL_IMAGES, RELAXED_MIN_NUM_MATCHES, map_models, mapper_options

@@ -5,9 +5,9 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
-from pipeline.config import SfmConfig
 from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobCancelled, JobOptions, StageContext
+from pipeline.sfm.config import SfmConfig
 from pipeline.sfm.recipe import run_sfm
 
 

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import SfmConfig
 from pipeline.scene.align import align_to_reference
 from pipeline.scene.images import write_image
 from pipeline.scene.loader import load_scene
+from pipeline.sfm.config import SfmConfig
 from pipeline.sfm.recipe import choose_matcher, is_numbered_sequence, run_sfm
 
 REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.config import SfmConfig
 from pipeline.scene.align import align_to_reference
 from pipeline.scene.colmap import read_colmap
 from pipeline.scene.images import read_image, write_image
 from pipeline.scene.loader import load_images, load_scene
+from pipeline.sfm.config import SfmConfig
 from pipeline.sfm.recipe import (
     NoImagesError,
     NoModelError,

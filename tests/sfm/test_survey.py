@@ -9,7 +9,7 @@ from pathlib import Path
 import pycolmap
 import pytest
 
-from pipeline.config import SfmConfig
+from pipeline.sfm.config import SfmConfig
 from pipeline.sfm.loops import MAX_WORDS, MIN_WORDS, build_vocab_tree, num_words
 from pipeline.sfm.recipe import run_sfm
 

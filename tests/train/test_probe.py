@@ -314,7 +314,7 @@ def test_auto_picks_3dgs_without_water_on_sfm_poses(tmp_path, record_property):
     """The same scene without water as a user's job sees it: cameras and points from SfM, not the generator's.
     On SfM poses the points "measured" 0.29 of water (0.05 on the true ones) and the medium won the race by
     2.8 dB (24 views 320x240); the photos' own drift with range is what says there is none."""
-    from pipeline.config import SfmConfig
+    from pipeline.sfm.config import SfmConfig
     from pipeline.sfm.recipe import run_sfm
 
     root = generate_scene(SynthConfig(views=16, width=160, height=120, preset="none", seed=0), tmp_path / "none")
