@@ -12,9 +12,9 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-import pycolmap
-
 from pipeline.job.layout import JobLayout
+from pipeline.sfm.config import SfmConfig
+from pipeline.sfm.recipe import undistort_model
 
 
 def share_sfm(job: Path, other: Path, photos: Path) -> None:
@@ -27,9 +27,7 @@ def share_sfm(job: Path, other: Path, photos: Path) -> None:
     lay = JobLayout(other)
     for photo in lay.images.iterdir():  # ingest keeps a generated scene's names and PNGs
         shutil.copyfile(photos / photo.name, photo)
-    scene = lay.root / "scene"
-    tmp = lay.root / "_undistort"
-    pycolmap.undistort_images(str(tmp), str(scene / "distorted" / "sparse" / "0"), str(lay.images))
+    scene = lay.scene  # the undistorted model is rewritten as the SfM stage writes it (the same cameras)
     shutil.rmtree(scene / "images")
-    shutil.move(str(tmp / "images"), str(scene / "images"))
-    shutil.rmtree(tmp)
+    shutil.rmtree(scene / "sparse")
+    undistort_model(scene / "distorted" / "sparse" / "0", lay.images, scene, lay.root / "_undistort", SfmConfig())

@@ -11,18 +11,11 @@ import numpy as np
 
 from pipeline.export.views import export_views
 from pipeline.job.layout import RENDER_FOLDERS, JobLayout
-from pipeline.restore.views import (
-    NOTHING_TO_RESTORE,
-    job_water_sigma,
-    lens_cameras,
-    render_for_photo,
-    restore_photo,
-)
+from pipeline.restore.views import NOTHING_TO_RESTORE, JobPhotos, restore_photo
 from pipeline.scene.colmap import qvec_to_rotmat, rotmat_to_qvec
 from pipeline.scene.records import View
 from pipeline.train.checkpoint import load_checkpoint
 from pipeline.train.model import model_from_state, training_views
-from pipeline.train.photo_exposure import photo_fall_off, photo_gains, survey_exposure
 
 log = logging.getLogger(__name__)
 
@@ -113,20 +106,14 @@ def render_job(job: str | Path, out: str | Path, views: str | Sequence[str] = "a
 def _restore_photos(job: Path, state: dict, views: Sequence[View], out: Path, max_gain: float, fmt: str) -> int:
     """The input photos of ``views`` de-watered into ``out/restored`` and ``out/confidence``; their count."""
     model = model_from_state(state)
-    gains = photo_gains(job)  # each photo's exposure, as the restore stage removed it
     if model.medium is None:
         raise RenderError(NOTHING_TO_RESTORE)
     layout = JobLayout(job)
-    lenses = lens_cameras(layout.scene)
-    sigma = job_water_sigma(job)
-    survey = survey_exposure(gains)
-    fall_off = photo_fall_off(job)[0]  # as the restore stage divided it out
+    job_photos = JobPhotos.of(job, model)  # exposure and fall-off as the restore stage removed them
     for v in views:  # out/ gets the job's own folder names for them
         restore_photo(layout.images / v.name, out / layout.restored.name, out / layout.confidence.name,
-                      lenses[v.name], render_for_photo(model, v, lenses[v.name], sigma,
-                                                       log_gain=gains.get(v.name), survey_log_gain=survey,
-                                                       fall_off=fall_off)[0],
-                      max_gain=max_gain, fmt=fmt, space=model.colour_space)
+                      job_photos.lenses[v.name], job_photos.render(v)[0], max_gain=max_gain, fmt=fmt,
+                      space=model.colour_space)
     return len(views)
 
 

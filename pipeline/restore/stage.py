@@ -14,18 +14,11 @@ from pipeline.job.markers import atomic_write_json, read_marker
 from pipeline.job.options import JobCancelled, JobOptions, StageContext
 from pipeline.restore.consistency import restored_consistency
 from pipeline.restore.truth import score_restored
-from pipeline.restore.views import (
-    NOTHING_TO_RESTORE,
-    job_water_sigma,
-    lens_cameras,
-    render_for_photo,
-    restore_photo,
-)
+from pipeline.restore.views import NOTHING_TO_RESTORE, JobPhotos, restore_photo
 from pipeline.scene.images import list_images
 from pipeline.synth.ground_truth import find_ground_truth
 from pipeline.train.checkpoint import load_checkpoint
 from pipeline.train.model import model_from_state, training_views
-from pipeline.train.photo_exposure import photo_fall_off, photo_gains, survey_exposure
 from pipeline.train.render import displayed
 
 log = logging.getLogger(__name__)
@@ -47,13 +40,10 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         atomic_write_json(layout.restore_result, res)
         return res
     views = training_views(job, state)
-    sigma = job_water_sigma(job)
-    lenses = lens_cameras(layout.scene)
+    job_photos = JobPhotos.of(job, model)
+    lenses = job_photos.lenses
     photos = {p.name for p in list_images(layout.images)}
     gt = find_ground_truth(opts.source, opts.ground_truth)
-    gains = photo_gains(job)  # each photo's exposure, removed before it is de-watered
-    survey = survey_exposure(gains)  # ... and the survey's mean, which the restored photos are given
-    fall_off, fall_record = photo_fall_off(job)  # the survey's fall-off, divided out as training divided it out
     renders = {}  # with ground truth: each view's J as displayed, scored against the truth below
     per_view, t_all = [], time.perf_counter()
     for k, view in enumerate(views):
@@ -61,9 +51,7 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
             raise JobCancelled(f"cancelled during restore after {k} of {len(views)} photos")
         t0 = time.perf_counter()
         src = layout.images / view.name
-        rendered, out, pad = render_for_photo(model, view, lenses[view.name], sigma,  # out to the photo's edges
-                                              log_gain=gains.get(view.name), survey_log_gain=survey,
-                                              fall_off=fall_off)
+        rendered, out, pad = job_photos.render(view)  # out to the photo's edges
         if gt is not None:  # the training camera's render, as restored/ held it before
             J = displayed(out, model.colour_space).J
             renders[view.name] = J[pad:J.shape[0] - pad, pad:J.shape[1] - pad]
@@ -74,8 +62,8 @@ def stage_restore(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     registered = {v.name for v in views}
     split = _split_models(job)
     res = {"mode": model.mode, "restored": len(per_view), "max_gain": opts.max_gain, "colour_space": model.colour_space,
-           "format": opts.restore_format, "fall_off": fall_record, "seconds": round(time.perf_counter() - t_all, 3),
-           "views": per_view,
+           "format": opts.restore_format, "fall_off": job_photos.fall_record,
+           "seconds": round(time.perf_counter() - t_all, 3), "views": per_view,
            "not_restored": [{"name": n, "reason": split.get(n, "SfM did not register it (no pose)")}
                             for n in sorted(photos - registered)]}
     res["consistency"] = restored_consistency(job, {v["name"]: v["file"] for v in per_view})  # no truth needed

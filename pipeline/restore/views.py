@@ -24,6 +24,7 @@ from pipeline.scene.colmap import has_model
 from pipeline.scene.colmap import lens_cameras as read_lenses
 from pipeline.scene.records import Camera, LensCamera, View, ray_length_factor
 from pipeline.train.model import TrainedModel
+from pipeline.train.photo_exposure import photo_fall_off, photo_gains, survey_exposure
 from pipeline.train.render import ViewOutputs, render_outputs
 
 # What a 3dgs job's report and restore.json say: that mode models no water.
@@ -115,6 +116,34 @@ def render_for_photo(model: TrainedModel, view: View, lens: LensCamera, sigma: n
     rendered = rendered_view(model, padded, backend, out=out, sigma=sigma, pad=pad)
     return (dataclasses.replace(rendered, log_gain=log_gain, output_log_gain=survey_log_gain, fall_off=fall_off),
             out, pad)
+
+
+@dataclasses.dataclass(frozen=True)
+class JobPhotos:
+    """What de-watering a trained job's photos reads of the job, read once: the lens cameras, the water's spread,
+    each photo's exposure and the survey's mean, the in-frame fall-off (``fall_record``: whether it was divided
+    out and why). The restore stage and ``dualphys render --what photos`` both restore through it."""
+
+    model: TrainedModel
+    lenses: dict[str, LensCamera]
+    sigma: np.ndarray | None
+    gains: dict[str, np.ndarray]
+    survey: np.ndarray | None
+    fall_off: np.ndarray | None
+    fall_record: dict
+
+    @classmethod
+    def of(cls, job: Path, model: TrainedModel) -> JobPhotos:
+        gains = photo_gains(job)  # each photo's exposure, removed before it is de-watered
+        fall_off, fall_record = photo_fall_off(job)  # divided out as training divided it out
+        return cls(model, lens_cameras(JobLayout(job).scene), job_water_sigma(job), gains,
+                   survey_exposure(gains), fall_off, fall_record)  # the restored photos get the survey's exposure
+
+    def render(self, view: View) -> tuple[RenderedView, ViewOutputs, int]:
+        """:func:`render_for_photo` of ``view`` with this job's lens, water, exposure and fall-off."""
+        return render_for_photo(self.model, view, self.lenses[view.name], self.sigma,
+                                log_gain=self.gains.get(view.name), survey_log_gain=self.survey,
+                                fall_off=self.fall_off)
 
 
 def restore_photo(src: Path, restored_dir: Path, confidence_dir: Path, lens: LensCamera, view: RenderedView, *,

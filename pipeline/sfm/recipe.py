@@ -219,7 +219,7 @@ def run_sfm(
         placed = {im.name for im in rec.images.values() if im.has_pose}
         others = separate_models(_write_models(found.recs, distorted / "sparse"), placed)
         t_und = time.perf_counter()
-        _undistort(distorted / "sparse" / "0", src_dir, out, distorted / "_undistort", cfg, cancellation_token)
+        undistort_model(distorted / "sparse" / "0", src_dir, out, distorted / "_undistort", cfg, cancellation_token)
         attempt.phases["undistort"] = time.perf_counter() - t_und
 
     min_matches = RELAXED_MIN_NUM_MATCHES if retries else mapper_options(cfg).min_num_matches
@@ -748,8 +748,9 @@ def _match(db_path: Path, matcher: str, cfg: SfmConfig, token: Any, vocab_tree: 
                                   device=pycolmap.Device.cpu, cancellation_token=token)  # fmt: skip
 
 
-def _undistort(model_dir: Path, image_dir: Path, out: Path, tmp: Path, cfg: SfmConfig, token: Any) -> None:
-    """PINHOLE undistortion into ``out/images`` and ``out/sparse/0`` (MVS leftovers dropped)."""
+def undistort_model(model_dir: Path, image_dir: Path, out: Path, tmp: Path, cfg: SfmConfig, token: Any = None) -> None:
+    """PINHOLE undistortion of ``image_dir``'s images through the model ``model_dir`` into ``out/images`` and
+    ``out/sparse/0`` (MVS leftovers dropped; ``tmp`` is the scratch folder)."""
     import pycolmap  # lazy: native COLMAP (~0.2 s to load), only SfM and COLMAP files need it
 
     pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), num_threads=cfg.image_threads,
@@ -773,4 +774,5 @@ __all__ = [
     "choose_matcher",
     "is_numbered_sequence",
     "run_sfm",
+    "undistort_model",
 ]
