@@ -23,6 +23,11 @@ Job folder::
                         renders/{restored,with_water,attenuation,backscatter,depth}/
                         (the model's renders at the training resolution), report.json, report.html,
                         speed_vs_error.png
+      survey.json       survey: the metric scale (source, per-frame agreement), the frame (CRS, georeference fit),
+                        the products' grid, area and reef-structure numbers
+      output/survey/    survey: ortho.tif (the restored photos as an orthomosaic), ortho_water.tif (the photos
+                        as taken), ortho_confidence.tif, dem.tif (height above the survey plane), previews
+                        (ortho.jpg, ortho_water.jpg, dem_hillshade.png); Cloud-Optimized GeoTIFFs
       .stages/<stage>.json   completion markers (config hash + result)
     written by the service:
       manifest.json     the job record (a folder without one is an upload still streaming)
@@ -206,6 +211,44 @@ class JobLayout:
     def confidence(self) -> Path:
         """One confidence map per restored photo (``<stem>.png``)."""
         return self.output / "confidence"
+
+    # ------------------------------------------------------------------ survey products
+    @property
+    def survey_result(self) -> Path:
+        return self.root / "survey.json"
+
+    @property
+    def survey(self) -> Path:
+        """The survey products (:mod:`pipeline.survey`): orthomosaics, elevation model, previews."""
+        return self.output / "survey"
+
+    @property
+    def ortho(self) -> Path:
+        return self.survey / "ortho.tif"
+
+    @property
+    def ortho_water(self) -> Path:
+        return self.survey / "ortho_water.tif"
+
+    @property
+    def ortho_confidence(self) -> Path:
+        return self.survey / "ortho_confidence.tif"
+
+    @property
+    def dem(self) -> Path:
+        return self.survey / "dem.tif"
+
+    @property
+    def ortho_preview(self) -> Path:
+        return self.survey / "ortho.jpg"
+
+    @property
+    def ortho_water_preview(self) -> Path:
+        return self.survey / "ortho_water.jpg"
+
+    @property
+    def hillshade_preview(self) -> Path:
+        return self.survey / "dem_hillshade.png"
 
     # ------------------------------------------------------------------ bookkeeping
     @property
