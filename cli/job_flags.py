@@ -21,11 +21,13 @@ from pipeline.cli_args import positive
 from pipeline.config import TRAIN_PRESETS
 from pipeline.job.options import COLOUR_SPACES, JOB_MODES, RESTORE_FORMATS, JobOptions
 
-# JobOptions field -> flag, in --help order. Not flags: source (the positional input), metric_scale (the API's
-# only), ground_truth (found next to a generated scene's images).
+# JobOptions field -> flag, in --help order. Not flags: source (the positional input), ground_truth (found next
+# to a generated scene's images). A bool field is a --flag / --no-flag pair.
 RUN_FLAGS: dict[str, str] = {
     "preset": "--preset", "mode": "--mode", "iterations": "--iterations", "max_width": "--max-width",
     "seed": "--seed", "colour_space": "--colour-space", "restore_format": "--format", "max_gain": "--max-gain",
+    "ortho": "--ortho", "ortho_gsd": "--ortho-gsd", "telemetry": "--telemetry", "scale_bar": "--scale-bar",
+    "metric_scale": "--metric-scale",
 }
 CHOICES: dict[str, Sequence[str]] = {
     "preset": tuple(TRAIN_PRESETS), "mode": JOB_MODES, "colour_space": COLOUR_SPACES,
@@ -41,6 +43,9 @@ RUN_HELP: dict[str, str | None] = {
     "colour_space": "where the water physics runs: on the photos' sRGB values or on linear light",
     "restore_format": "the restored photos: auto (each as its input: 8-bit JPEG or PNG) | tiff16",
     "max_gain": "cap on the restoration's per-channel gain 1/A",
+    "ortho": "make the orthomosaics and elevation model (--no-ortho: skip them)",
+    "telemetry": "a per-frame CSV (file, camera_to_bottom_m, lat, lon): a path, or a file name in the input folder",
+    "scale_bar": "known lengths in the photos: 'PHOTO:X1,Y1:X2,Y2:METRES', several joined by ';'",
 }
 
 
@@ -58,11 +63,19 @@ def add_job_flags(parser: argparse.ArgumentParser) -> None:
     for name, flag in RUN_FLAGS.items():
         field = fields[name]
         extra = {"choices": list(CHOICES[name])} if name in CHOICES else {}
+        kind = _value_type(hints[name])
+        if kind is bool:
+            extra["action"] = argparse.BooleanOptionalAction
+        else:
+            extra["type"] = positive if name in POSITIVE else kind
         parser.add_argument(flag, dest=name, default=field.default,
-                            type=positive if name in POSITIVE else _value_type(hints[name]),
                             help=RUN_HELP.get(name, field.metadata.get("help")), **extra)
 
 
 def job_options(args: argparse.Namespace, source: Path) -> JobOptions:
-    """The job the parsed ``RUN_FLAGS`` ask for, on ``source``."""
-    return JobOptions(source=str(source), **{name: getattr(args, name) for name in RUN_FLAGS})
+    """The job the parsed ``RUN_FLAGS`` ask for, on ``source``. A telemetry file given by a path that exists is
+    made absolute (the job may run from another folder); a bare name is looked up among the input's CSV files."""
+    values = {name: getattr(args, name) for name in RUN_FLAGS}
+    if values.get("telemetry") and Path(values["telemetry"]).is_file():
+        values["telemetry"] = str(Path(values["telemetry"]).resolve())
+    return JobOptions(source=str(source), **values)

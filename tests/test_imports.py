@@ -152,6 +152,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("train",),
     ("evaluate",),
     ("restore",),
+    ("survey",),
     ("export",),
 )
 TOP = ("service", "worker", "cli")  # above pipeline, in this order

@@ -21,6 +21,7 @@ import numpy as np
 from pipeline.evaluate.evaluation import json_safe, stage_timings
 from pipeline.evaluate.plots import image_png, speed_vs_error_png
 from pipeline.export.report_html import render_html
+from pipeline.export.report_survey import survey_pictures
 from pipeline.job.layout import RENDER_FOLDERS, JobLayout
 from pipeline.job.markers import atomic_write_json, atomic_write_text, read_marker
 from pipeline.job.table import STAGES
@@ -117,8 +118,9 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
     timings = {k: v for k, v in ev["timings"].items() if k != "stages_s"}
     timings.update(stages_s=stages, total_s=sum(v for v in stages.values() if v is not None))
     restoration = ev.get("restoration")
-    scale = restoration["metres_per_unit"] if restoration else options.get("metric_scale")
-    model = {**ev["model"], "metres_per_unit": scale}
+    survey = _read_json(layout.survey_result)
+    scale, scale_source = metric_scale_of(restoration, survey, options)
+    model = {**ev["model"], "metres_per_unit": scale, "metres_per_unit_source": scale_source}
     medium = model.get("medium")
     if medium and scale:
         model["medium_per_metre"] = {"beta_D": per_metre(medium["beta_D"], scale),
@@ -153,8 +155,23 @@ def build_report(job: str | Path, export_s: float | None = None) -> dict[str, An
         "consistency": consistency_of(restore),  # restore.json's, lifted to the top
         "input": input_summary(job, options),
         "sfm": sfm_summary(job),
+        "survey": survey,  # survey.json: scale, frame, products (None: a job from before the survey stage)
     }
     return json_safe(relative_paths(report, job))
+
+
+def metric_scale_of(restoration: dict | None, survey: dict | None, options: dict) -> tuple[float | None, str | None]:
+    """Metres per scene unit and where it came from: a generated scene's truth (the alignment to its true cameras,
+    so its water is compared in 1/m exactly), else the survey's measured scale (altimeter, scale bar, metric_scale
+    or GPS: :mod:`pipeline.survey.scale`), else ``metric_scale`` as given."""
+    if restoration and restoration.get("metres_per_unit"):
+        return restoration["metres_per_unit"], "ground truth (alignment to the true cameras)"
+    fit = (survey or {}).get("scale") or {}
+    if fit.get("metres_per_unit"):
+        return fit["metres_per_unit"], fit.get("source")
+    if options.get("metric_scale"):
+        return options["metric_scale"], "metric_scale"
+    return None, None
 
 
 def consistency_of(restore: dict | None) -> dict[str, Any]:
@@ -229,6 +246,7 @@ class Pictures:
     # per shown photo: (name, [(label, png)]): the photo and its restored copy side by side, their confidence,
     # and the same crop of both at full resolution
     originals: list[tuple[str, list[tuple[str, bytes]]]] = field(default_factory=list)
+    survey: list[tuple[str, bytes]] = field(default_factory=list)  # the survey products' previews, (label, png)
 
 
 SHOWN_WIDTH = 560  # px: the side-by-side photo and restored copy in report.html
@@ -336,7 +354,7 @@ def collect_pictures(job: Path, report: dict) -> Pictures:
             maps.append((n, cells))
     points = report["speed_vs_error"]["points"]
     curve = speed_vs_error_png(points) if points else None
-    return Pictures(views, maps, curve, original_pictures(job, report))
+    return Pictures(views, maps, curve, original_pictures(job, report), survey_pictures(job))
 
 
 def write_report(job: str | Path, out: str | Path | None = None, export_s: float | None = None) -> list[Path]:

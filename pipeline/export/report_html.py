@@ -11,6 +11,7 @@ import math
 from html import escape
 from typing import TYPE_CHECKING, Any
 
+from pipeline.export.report_survey import survey_html
 from pipeline.restore.dewater import CONFIDENCE_ERROR
 
 if TYPE_CHECKING:
@@ -417,7 +418,7 @@ def render_html(r: dict, pics: Pictures) -> str:
              f"MSE, SSIM with an 11x11 Gaussian window. LPIPS: {escape(t['lpips_reason'] or 'LPIPS-VGG')}.</p>",
              table(["view", "PSNR (dB)", "SSIM", "render ms"],
                    [[p["name"], p["psnr"], p["ssim"], p["render_ms"]] for p in t["per_view"]], 3),
-             _restoration(r["restoration"], r),
+             _restoration(r["restoration"], r), survey_html(r.get("survey"), pics.survey, data_uri),
              "<h2>Held-out views: photo, model" + ("" if no_water_removed(r) else ", model restored")
              + (", ground truth" if r["restoration"] else "") + "</h2>"]
     parts += [f"<p class=muted>{escape(name)}</p>" + _figures(cells) for name, cells in pics.views]

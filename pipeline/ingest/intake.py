@@ -5,7 +5,8 @@ safe name (sub-folders become ``a__b__name``); JPEG/PNG files already in display
 byte for byte, anything else (rotated by EXIF, TIFF, EXR, WebP, misnamed files) is written as PNG in display
 orientation. Video files (:mod:`pipeline.ingest.video`) give their keyframes, written as
 ``<video>_<frame index>.jpg``, and an entry in ``videos``. Unreadable files (and videos that give no frame) are
-skipped and listed with the reason; non-image files are ignored and listed.
+skipped and listed with the reason; non-image files are ignored and listed, except CSV files, which are kept in
+``records/`` as the survey's per-frame logs (the survey stage reads the one ``telemetry`` names).
 Fewer than ``min_images`` usable images is an :class:`IngestError` (the caller maps it to a 4xx / exit 1).
 """
 
@@ -30,6 +31,7 @@ from pipeline.scene.images import ImageReadError, read_pixels, write_image
 
 log = logging.getLogger(__name__)
 
+MAX_RECORD_BYTES = 20_000_000  # a survey log of this size lists ~100k frames
 NON_IMAGE_SUFFIXES = frozenset({".txt", ".md", ".csv", ".json", ".xml", ".yaml", ".yml", ".log", ".pdf", ".doc",
                                 ".docx", ".html", ".py", ".sh", ".db", ".ini", ".cfg"})
 
@@ -69,6 +71,12 @@ def safe_name(rel: Path) -> str:
     return name.lstrip(".") or "image"
 
 
+def _is_record(path: Path, rel: Path) -> bool:
+    """A CSV beside the images, small enough to be a survey's per-frame log (``JobLayout.records``)."""
+    return (path.suffix.lower() == ".csv" and not rel.name.startswith(".")
+            and path.stat().st_size <= MAX_RECORD_BYTES)
+
+
 def _probe(path: Path) -> tuple[str, int]:
     """(format name, EXIF orientation) from the header, by content; ("", 1) when OIIO does not know the file."""
     import OpenImageIO as oiio  # lazy: native image library, loaded only when a file is read or written
@@ -97,8 +105,9 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     source, job_dir = Path(source), Path(job_dir)
     layout = JobLayout(job_dir)
     images_dir = layout.images
-    if images_dir.exists():
-        shutil.rmtree(images_dir)  # a re-run starts clean: the marker was not written, so this is partial
+    for folder in (images_dir, layout.records):
+        if folder.exists():
+            shutil.rmtree(folder)  # a re-run starts clean: the marker was not written, so this is partial
     images_dir.mkdir(parents=True)
     ignored: list[dict] = []
     root, candidates = _gather(source, layout.unpacked, cfg.limits, ignored)
@@ -107,7 +116,11 @@ def ingest(source: str | Path, job_dir: str | Path, cfg: IngestConfig | None = N
     videos: list[dict] = []
     for i, path in enumerate(candidates):
         rel = path.relative_to(root)
-        if rel.name.startswith(".") or path.suffix.lower() in NON_IMAGE_SUFFIXES:
+        if _is_record(path, rel):  # a survey's telemetry log, for the survey stage's --telemetry
+            layout.records.mkdir(exist_ok=True)
+            shutil.copyfile(path, layout.records / safe_name(rel))
+            ignored.append({"file": str(rel), "reason": f"not an image: kept as a survey record ({safe_name(rel)})"})
+        elif rel.name.startswith(".") or path.suffix.lower() in NON_IMAGE_SUFFIXES:
             ignored.append({"file": str(rel), "reason": "not an image file"})
         elif is_video(path):
             say = None if tick is None else partial(tick, i / len(candidates))

@@ -7,6 +7,7 @@ Job folder::
       job.json          the options (written once by whoever creates the job)
       images/           ingest: validated, upright images (upload/ holds an archive while ingest unpacks it)
       ingest.json       ingest: what was taken and what was refused
+      records/          ingest: the CSV files that came with the images (telemetry logs for the survey stage)
       scene/            sfm: images/ (undistorted) + sparse/0 (PINHOLE) + distorted/
       classify.json     classify: water type, probabilities, index w, controller settings
                         (water.json in job folders written before the rename; see legacy_classify)
@@ -83,6 +84,11 @@ class JobLayout:
     @property
     def ingest(self) -> Path:
         return self.root / "ingest.json"
+
+    @property
+    def records(self) -> Path:
+        """The survey's logs that came with the images (CSV files, flattened names as images/ has them)."""
+        return self.root / "records"
 
     # ------------------------------------------------------------------ sfm, classify
     @property

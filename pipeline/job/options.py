@@ -47,6 +47,19 @@ class JobOptions:
     max_gain: float = field(default=8.0, metadata={
         "help": "cap on the restoration's per-channel gain 1/A (where the water let less light through, noise "
                 "would be amplified more; those pixels get low confidence)"})
+    # Survey products (pipeline.survey): the orthomosaic and elevation model, in metres when the survey says how
+    ortho: bool = field(default=True, metadata={
+        "help": "make the survey products: a de-watered orthomosaic, the same with water, and an elevation model "
+                "(Cloud-Optimized GeoTIFFs)"})
+    ortho_gsd: float | None = field(default=None, metadata={
+        "help": "the products' ground resolution in metres per pixel (scene units without a metric scale); "
+                "default: the photos' own at the median range"})
+    telemetry: str | None = field(default=None, metadata={
+        "help": "a CSV of per-frame records (file, camera_to_bottom_m, lat, lon; AIMS frames.csv columns): a "
+                "path, or a file name in the uploaded archive or survey folder; EXIF is read without it"})
+    scale_bar: str | None = field(default=None, metadata={
+        "help": "known lengths marked in the photos, 'PHOTO:X1,Y1:X2,Y2:METRES', several joined by ';' "
+                "(pixel positions in the photo as uploaded)"})
     # A generated scene folder (pipeline.synth.procedural) to score against; unset: found next to an ``images``
     # source folder when that sits in a generated scene (pipeline.synth.ground_truth).
     ground_truth: str | None = None
@@ -62,6 +75,9 @@ class JobOptions:
                              f"{', '.join(RESTORE_FORMATS)}")
         if not self.max_gain >= 1.0:
             raise ValueError(f"max_gain is a gain cap >= 1, got {self.max_gain}")
+        if self.ortho_gsd is not None and not self.ortho_gsd > 0:
+            raise ValueError(f"ortho_gsd is a ground resolution > 0, got {self.ortho_gsd}")
+        parse_scale_bars(self.scale_bar)  # raises ValueError with the reason
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -73,6 +89,34 @@ class JobOptions:
         if unknown:
             raise ValueError(f"unknown job options: {sorted(unknown)}")
         return cls(**d)
+
+
+@dataclass(frozen=True)
+class ScaleBar:
+    """A known length marked in one photo: two pixel positions in the photo as uploaded (column, row from its
+    top-left corner, as an image viewer shows them) and the metres between the two points on the seabed."""
+
+    photo: str
+    a: tuple[float, float]
+    b: tuple[float, float]
+    metres: float
+
+
+def parse_scale_bars(text: str | None) -> list[ScaleBar]:
+    """``'PHOTO:X1,Y1:X2,Y2:METRES'`` entries joined by ``';'`` -> scale bars; ValueError says what is wrong."""
+    bars = []
+    for entry in filter(None, (e.strip() for e in (text or "").split(";"))):
+        parts = entry.rsplit(":", 3)
+        try:
+            photo, a, b, metres = parts
+            (x1, y1), (x2, y2) = (tuple(float(v) for v in p.split(",")) for p in (a, b))
+            bar = ScaleBar(photo.strip(), (x1, y1), (x2, y2), float(metres))
+        except ValueError:
+            raise ValueError(f"scale_bar {entry!r}: expected 'PHOTO:X1,Y1:X2,Y2:METRES'") from None
+        if not photo.strip() or not bar.metres > 0 or bar.a == bar.b:
+            raise ValueError(f"scale_bar {entry!r}: a photo name, two different points and a length > 0 needed")
+        bars.append(bar)
+    return bars
 
 
 @dataclass

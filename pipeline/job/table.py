@@ -41,6 +41,8 @@ STAGE_TABLE: tuple[Stage, ...] = (
           ("preset", "mode", "max_width", "iterations", "seed", "colour_space"), 70, "train", ("train_result",)),
     Stage("evaluate", "pipeline.evaluate.stage:stage_evaluate", ("ground_truth",), 5, "cpu"),
     Stage("restore", "pipeline.restore.stage:stage_restore", ("restore_format", "max_gain"), 6, "cpu"),
+    Stage("survey", "pipeline.survey.stage:stage_survey",
+          ("ortho", "ortho_gsd", "telemetry", "scale_bar", "metric_scale"), 6, "cpu", ("survey_result",)),
     Stage("export", "pipeline.export.stage:stage_export", (), 8, "cpu", ("output",)),
 )
 STAGES: tuple[str, ...] = tuple(s.name for s in STAGE_TABLE)

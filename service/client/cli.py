@@ -117,7 +117,8 @@ def cmd_submit(args: argparse.Namespace) -> int:
         return 1
     options = {"preset": args.preset, "mode": args.mode, "iterations": args.iterations, "max_width": args.max_width,
                "seed": args.seed, "metric_scale": args.metric_scale, "colour_space": args.colour_space,
-               "restore_format": args.format, "max_gain": args.max_gain}
+               "restore_format": args.format, "max_gain": args.max_gain, "ortho": args.ortho,
+               "ortho_gsd": args.ortho_gsd, "telemetry": args.telemetry, "scale_bar": args.scale_bar}
     with client:
         try:
             client.check()
@@ -269,6 +270,11 @@ def add_client_commands(sub) -> None:
     s.add_argument("--colour-space", default=None, choices=list(COLOUR_SPACES))
     s.add_argument("--format", default=None, choices=list(RESTORE_FORMATS), help="the restored photos' format")
     s.add_argument("--max-gain", type=float, default=None, help="cap on the restoration's per-channel gain 1/A")
+    s.add_argument("--ortho", default=None, action=argparse.BooleanOptionalAction,
+                   help="make the orthomosaics and elevation model (--no-ortho: skip them)")
+    s.add_argument("--ortho-gsd", type=float, default=None, help="the products' ground resolution, metres per pixel")
+    s.add_argument("--telemetry", default=None, help="the name of a per-frame CSV inside the folder or archive")
+    s.add_argument("--scale-bar", default=None, help="known lengths: 'PHOTO:X1,Y1:X2,Y2:METRES', several joined by ';'")
     s.add_argument("--idempotency-key", default=None,
                    help="repeating the command with the same key and archive returns the first job")
     s.set_defaults(func=cmd_submit)

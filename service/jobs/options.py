@@ -17,7 +17,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model, field_validator
 
 from pipeline.config import TRAIN_PRESETS
-from pipeline.job.options import COLOUR_SPACES, JOB_MODES, RESTORE_FORMATS, JobOptions
+from pipeline.job.options import COLOUR_SPACES, JOB_MODES, RESTORE_FORMATS, JobOptions, parse_scale_bars
 
 # What a client may set (``source`` is the upload or the survey's set; ``ground_truth`` is for local runs only),
 # in the order the API documents them, with the API's bounds.
@@ -25,6 +25,9 @@ CLIENT_OPTIONS: dict[str, dict[str, Any]] = {
     "preset": {}, "mode": {}, "metric_scale": {"gt": 0}, "max_width": {"ge": 32, "le": 16384},
     "iterations": {"ge": 1}, "seed": {"ge": 0, "le": 2**31 - 1}, "colour_space": {}, "restore_format": {},
     "max_gain": {"ge": 1, "le": 1000},
+    # the survey products; telemetry names a CSV inside the upload (a bare name: no server path is ever read)
+    "ortho": {}, "ortho_gsd": {"gt": 0}, "telemetry": {"pattern": r"^[^/\\]{1,200}\.csv$"},
+    "scale_bar": {"max_length": 4000},
 }
 
 
@@ -55,6 +58,12 @@ class _ClientOptions(BaseModel):
             info.field_name]()
         if v not in choices:
             raise ValueError(f"unknown {info.field_name} {v!r}; choose from {choices}")
+        return v
+
+    @field_validator("scale_bar", check_fields=False)
+    @classmethod
+    def _bars(cls, v: str | None) -> str | None:
+        parse_scale_bars(v)  # ValueError with the reason: a 422 at submission, not a failed stage later
         return v
 
     def over_limit(self, max_iterations: int) -> str | None:

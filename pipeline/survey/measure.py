@@ -1,0 +1,86 @@
+"""The survey measured: each view's rendered depth, the metric scale from the survey's records, and the map frame.
+
+What the products and the report both read: :func:`measure_survey` returns a :class:`SurveyGeometry`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.job.options import JobOptions, parse_scale_bars
+from pipeline.scene.records import LensCamera, View
+from pipeline.survey.frame import GpsFit, SurveyFrame, georeference, plane_frame
+from pipeline.survey.marks import ScaleBarError, bar_length_units
+from pipeline.survey.records import FrameRecord
+from pipeline.survey.scale import ScaleFit, altimeter_scale, bar_scale, choose_scale
+from pipeline.survey.surface import ViewDepth, centre_distance, render_depths
+from pipeline.train.model import TrainedModel
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SurveyGeometry:
+    depths: dict[str, ViewDepth]  # image name -> its training camera and rendered surface depth
+    distances: dict[str, float]  # image name -> the model's camera-to-bottom distance (scene units)
+    scale: ScaleFit
+    gps: GpsFit
+    frame: SurveyFrame
+    units: str  # "m" or "scene units"
+    warnings: list[str]
+
+
+def resolve_telemetry(opts: JobOptions, records_dir: Path) -> Path | None:
+    """The telemetry CSV the options name: a file ingest kept from the upload or folder (``records_dir``, matched
+    by name or by its flattened ``folder__name``), else a path as given (command-line jobs). FileNotFoundError
+    names what was looked for."""
+    if not opts.telemetry:
+        return None
+    name = Path(opts.telemetry).name
+    kept = sorted(records_dir.glob("*.csv")) if records_dir.is_dir() else []
+    for p in kept:
+        if p.name == name or p.name.endswith("__" + name) or p.name == opts.telemetry.replace("/", "__"):
+            return p
+    path = Path(opts.telemetry).expanduser()
+    if path.is_absolute() and path.is_file():
+        return path
+    raise FileNotFoundError(f"telemetry {opts.telemetry!r}: not among the CSV files that came with the images "
+                            f"({', '.join(p.name for p in kept) or 'none'})")
+
+
+def measure_survey(model: TrainedModel, views: list[View], points: np.ndarray, lenses: dict[str, LensCamera],
+                   records: dict[str, FrameRecord], opts: JobOptions) -> SurveyGeometry:
+    """Depths, scale and frame of a trained job (module docstring)."""
+    warnings = []
+    depths = {vd.view.name: vd for vd in render_depths(model, views)}
+    distances = {n: d for n, vd in depths.items() if (d := centre_distance(vd)) is not None}
+    altimeter = {n: r.distance_m for n, r in records.items() if r.distance_m is not None}
+    alt = altimeter_scale(altimeter, distances)
+    bars = []
+    for bar in parse_scale_bars(opts.scale_bar):
+        try:
+            name, units = bar_length_units(bar, depths, lenses)
+            bars.append((f"{name} {bar.a}-{bar.b}", bar.metres, units))
+        except ScaleBarError as e:  # a mark we cannot measure is reported, never fails the job
+            warnings.append(str(e))
+    fit = choose_scale(alt, bar_scale(bars), opts.metric_scale)
+    centres = {n: vd.view.center for n, vd in depths.items()}
+    c = np.stack(list(centres.values()))
+    scale = fit.metres_per_unit
+    local = plane_frame(points if len(points) >= 3 else c, c, scale or 1.0, "m" if scale else "scene units")
+    gps = georeference(local, centres, records, scale_known=scale is not None)
+    if scale is None and gps.scale is not None:
+        fit = choose_scale(None, None, None, gps.scale)
+    units = "m" if fit.metres_per_unit is not None else "scene units"
+    if fit.outliers:
+        warnings.append(f"the altimeter disagrees with the model on {len(fit.outliers)} frames (left out of the "
+                        f"scale): {', '.join(fit.outliers[:5])}")
+    log.info("survey scale: %s (%s); frame: %s", fit.metres_per_unit, fit.source, gps.frame.crs_name)
+    return SurveyGeometry(depths, distances, fit, gps, gps.frame, units, warnings)
+
+
+__all__ = ["SurveyGeometry", "measure_survey", "resolve_telemetry"]
