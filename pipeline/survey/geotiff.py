@@ -11,7 +11,7 @@ What the files hold:
 - orthomosaics (RGB uint8): DEFLATE with the horizontal predictor and an internal 1-bit mask (cells without
   data). Lossless, because the products are measured (colour of the de-watered mosaic against the one with
   water, classification), and a mask rather than a nodata colour, because any RGB triple can be a real pixel.
-  ``compress="JPEG"`` (YCbCr, with the same mask) is there for a light web copy, ~3x smaller.
+  ``compress="JPEG"`` (YCbCr, with the same mask) is there for a light web copy, several times smaller.
 - rasters of values (DEM, confidence; float32): DEFLATE with the floating-point predictor, nodata NaN: the
   in-memory convention of :mod:`pipeline.survey.terrain`, no sentinel that a careless reader could average in
   as a height (a stray NaN shows), and GDAL, QGIS and rasterio honour a NaN nodata.
