@@ -3,8 +3,9 @@
 The DEM is ``[H, W]`` float heights in metres (float32 on disk) on a north-up grid of square cells of ``gsd``
 metres: row 0 is the northern edge, columns run east, heights are samples at the cell centres, NaN where the
 survey saw nothing. Pure functions: arrays in, numbers out. A DEM of any size (a numpy memmap is fine) is read
-in row blocks of about a million cells, so memory stays a few float64 blocks; areas and moments are summed in
-float64.
+in row blocks of about a million cells, so the temporaries stay bounded whatever its size (measured on a 3000 x
+3000 memmap: 43 MB for rugosity, 50 for height_range, 144 for hillshade besides its uint8 output); areas and
+moments are summed in float64.
 """
 
 from __future__ import annotations
