@@ -1,0 +1,1 @@
+"""Survey products: metric scale, georeference, orthomosaic and elevation model in metres."""
