@@ -138,7 +138,7 @@ def test_no_module_shadows_the_standard_library_or_an_installed_package():
 
 # pipeline's packages (and top-level modules) from the bottom up: each may import only those in earlier layers or
 # its own. The stages read the job contract and the libraries below them; evaluate scores a trained model; restore
-# and export read evaluate's results; survey makes map products of a finished job; cli (the `dualphys` command) sits
+# reads evaluate's results; survey maps a restored job; export reports all of it; cli (the `dualphys` command) sits
 # above pipeline and service.
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("config", "profiling", "cli_args"),
@@ -155,7 +155,6 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("restore",),
     ("survey",),
     ("export",),
-    ("survey",),
 )
 TOP = ("service", "worker", "cli")  # above pipeline, in this order
 

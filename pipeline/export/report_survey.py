@@ -55,7 +55,7 @@ def survey_sentences(s: dict) -> list[str]:
         height = terrain.get("height") or {}
         out.append(f"Grid {grid['width']} x {grid['height']} at {_num(grid['gsd'])} {unit} per pixel; area mapped "
                    f"{_num(grid.get('area'))} {unit}²; rugosity {_num(terrain.get('rugosity'), 4)}; height range "
-                   f"(2-98 %) {_num(height.get('range_robust', height.get('range')))} {unit}.")
+                   f"(2-98 %) {_num(height.get('robust_range'))} {unit}.")
     return out
 
 
