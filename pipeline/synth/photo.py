@@ -182,6 +182,17 @@ def _water_arrays(water: WaterParams) -> tuple[torch.Tensor, torch.Tensor, torch
     return tuple(torch.tensor(v, dtype=F64) for v in (water.beta_D, water.beta_B, water.B_inf))  # type: ignore
 
 
+def surface_colour(world: PhotoWorld, xy: torch.Tensor, ambient: float) -> torch.Tensor:
+    """Clean radiance J of the seabed at world points xy [M, 2] (metres): albedo · (ambient + (1 − ambient) ·
+    lambert), clipped to [0, 1]; view independent, in the albedo's encoding (the photos' sRGB values).  # [M, 3]
+    float64"""
+    n = normals(world.terrain, xy)
+    light = torch.tensor(LIGHT_DIR, dtype=F64)
+    lambert = (n @ (light / torch.linalg.norm(light))).clamp(min=0)
+    albedo = mosaic_albedo(world.photos, world.mosaic, xy).to(F64)
+    return (albedo * (ambient + (1 - ambient) * lambert)[:, None]).clamp(0, 1)
+
+
 def render_view(world: PhotoWorld, view: View, supersample: int, water: WaterParams, ambient: float,
                 distortion: tuple[float, float] = NO_DISTORTION, water_space: str = "srgb"
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -213,11 +224,7 @@ def _render_rows(world: PhotoWorld, view: View, s: int, water: WaterParams, ambi
     J = torch.zeros_like(d)
     if hit.any():
         p = o[hit] + t[hit, None] * d[hit]
-        n = normals(world.terrain, p[:, :2])
-        light = torch.tensor(LIGHT_DIR, dtype=F64)
-        lambert = (n @ (light / torch.linalg.norm(light))).clamp(min=0)
-        albedo = mosaic_albedo(world.photos, world.mosaic, p[:, :2]).to(F64)
-        J[hit] = (albedo * (ambient + (1 - ambient) * lambert)[:, None]).clamp(0, 1)
+        J[hit] = surface_colour(world, p[:, :2], ambient)
     if linear:
         J = srgb_to_linear(J)
     bd, bb, binf = _water_arrays(water)
