@@ -62,6 +62,13 @@ def _altitude(text: str) -> tuple[float, float]:
     return lo, hi
 
 
+def _latlon(text: str) -> tuple[float, float]:
+    lat, lon = _pair(text, "GPS origin", "-9.5988,143.7811 (lat,lon degrees)")
+    if not (-80 <= lat <= 84 and -180 <= lon <= 180):
+        raise argparse.ArgumentTypeError(f"GPS origin must be a UTM latitude (-80..84) and a longitude, got {text!r}")
+    return lat, lon
+
+
 def _fraction(text: str) -> float:
     try:
         f = float(text)
@@ -116,6 +123,13 @@ def _add_synth(sub) -> None:
                         "2.4,2.6 with --oblique 0 is a survey at nearly constant range")
     s.add_argument("--oblique", type=_fraction, default=None, metavar="FRACTION",
                    help="photo family: share of the views in the oblique pass (default 0.25; 0 = none)")
+    s.add_argument("--gps", type=_latlon, default=None, metavar="LAT,LON",
+                   help="photo family: latitude,longitude (degrees) of the world origin; each photo's EXIF and "
+                        "records.csv then carry its GPS position (world x east, y north, UTM metres; "
+                        "pipeline.synth.geo); e.g. --gps=-9.5988,143.7811 (default: no GPS)")
+    s.add_argument("--altimeter-noise", type=float, default=None, metavar="F",
+                   help="photo family: relative std of the altimeter's error in EXIF SubjectDistance (default "
+                        "0.02; 0 = exact; negative = no altimeter tag)")
     s.add_argument("--water-space", default="srgb", choices=["srgb", "linear"],
                    help="srgb: water applied to J as written; linear: to sRGB-decoded J, re-encoded after")
     s.add_argument("--defocus", type=float, default=0.0, metavar="PX",

@@ -41,6 +41,7 @@ from pipeline.synth.exposure import expose_scene, fall_off_scene
 from pipeline.synth.photo import PhotoSynthConfig, generate_photo_scene
 from pipeline.synth.photo_texture import TextureFolderError
 from pipeline.synth.procedural import generate_scene
+from pipeline.synth.survey_records import stamp_scene
 from pipeline.synth.water import WATER_PRESETS
 from pipeline.water import train_classifier
 from pipeline.water.classifier import SHIPPED_WEIGHTS
@@ -63,10 +64,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
             print("dualphys synth: --path applies to the procedural family only (the photo family flies its "
                   "own lawnmower + oblique survey)", file=sys.stderr)
             return 2
-        path = {k: v for k, v in (("altitude_range", args.altitude), ("oblique_fraction", args.oblique))
+        chosen = {k: v for k, v in (("altitude_range", args.altitude), ("oblique_fraction", args.oblique),
+                                  ("gps_origin", args.gps), ("altimeter_noise", args.altimeter_noise))
                 if v is not None}
         photo = PhotoSynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed,
-                                 distortion=args.distortion, water_space=args.water_space, **path)
+                                 distortion=args.distortion, water_space=args.water_space, **chosen)
         try:
             out = generate_photo_scene(photo, args.out)
         except (TextureFolderError, ValueError) as e:
@@ -74,8 +76,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
             return 1
         views, preset = photo.views, photo.preset
     else:
-        if args.altitude is not None or args.oblique is not None:
-            print("dualphys synth: --altitude and --oblique apply to the photo family only", file=sys.stderr)
+        if any(v is not None for v in (args.altitude, args.oblique, args.gps, args.altimeter_noise)):
+            print("dualphys synth: --altitude, --oblique, --gps and --altimeter-noise apply to the photo family "
+                  "only", file=sys.stderr)
             return 2
         cfg = SynthConfig(views=args.views, width=w, height=h, preset=args.preset, seed=args.seed, path=args.path,
                           distortion=args.distortion, water_space=args.water_space)
@@ -94,6 +97,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
     if args.fall_off > 0:
         fall_off_scene(out, args.fall_off)
         extra.update(fall_off=args.fall_off)
+    if extra and args.family == "photo":
+        stamp_scene(out)  # the camera effects rewrote images/ without the survey records' EXIF
     print(json.dumps({"out": str(out), "family": args.family, "views": views, "preset": preset, **extra,
                       "seconds": round(time.perf_counter() - t0, 2)}))
     return 0

@@ -13,11 +13,16 @@ water applied per pixel exactly as our medium model assumes could never show whe
 
 Output folder (the layout of :mod:`pipeline.synth.procedural`, so ground truth and evaluation work)::
 
-    images/      underwater images, 8-bit PNG frame_0000.png ...
+    images/      underwater images, 8-bit PNG frame_0000.png ..., with the survey's records in their EXIF
     clean/       clean radiance J (box-filtered supersamples), 8-bit PNG
     depth/       camera-space z in metres (box-filtered), float32 .npy [H, W]; 1e3 where a ray hits nothing
     sparse_gt/   COLMAP text model of the true PINHOLE cameras and true surface points with observations
     water.json   preset, beta_D, beta_B, B_inf, units, model, generator config, "family": "photo"
+    records.csv  per frame: capture time, altimeter (noisy) and true camera-to-bottom distance, lat/lon
+                 (:mod:`.survey_records`; the same records in each photo's EXIF, :mod:`.exif_records`)
+
+World: metres, z up, x east, y north (with ``gps_origin``, world x/y are UTM metres from the origin: :mod:`.geo`).
+The true seabed height and clean colour at any world x, y: :func:`pipeline.synth.survey_truth.true_surface`.
 
 Water presets (R, G, B camera bands, 1/m; B∞ linear [0, 1]). Chosen inside published ranges, not measured at a
 site, and deliberately different from ``pipeline.synth.water.WATER_PRESETS``. Sources: Jerlov (1976, *Marine Optics*)
@@ -61,6 +66,7 @@ import torch
 
 from pipeline.scene.colour import linear_to_srgb, srgb_to_linear
 from pipeline.scene.records import Camera, View
+from pipeline.synth.geo import WorldGeo
 from pipeline.synth.lens import distortion_pair, is_distorted, original_camera, pixel_directions, row_bands
 from pipeline.synth.photo_path import photo_survey_path
 from pipeline.synth.photo_texture import Mosaic, PhotoBox, PhotoSet, load_photos, make_mosaic, mosaic_albedo
@@ -74,6 +80,7 @@ from pipeline.synth.procedural import (
     lens_and_space_meta,
     write_scene_files,
 )
+from pipeline.synth.survey_records import RECORDS_FILE, frame_records, parse_start, write_survey_records
 from pipeline.synth.water import TRUE_WATER_FILE, WaterParams
 
 log = logging.getLogger(__name__)
@@ -146,6 +153,11 @@ class PhotoSynthConfig:
     distortion: tuple[float, float] = (0.0, 0.0)
     water_space: Literal["srgb", "linear"] = "srgb"  # "linear": water applied to sRGB-decoded J, then re-encoded
     max_rays_per_view: int = 4_000_000  # supersample is lowered until width·height·s² fits (large sizes)
+    # The survey's records per frame (pipeline.synth.survey_records; records.csv and each photo's EXIF):
+    altimeter_noise: float | None = 0.02  # relative std of the altimeter's Gaussian error; 0 = exact; None/< 0 = none
+    gps_origin: tuple[float, float] | None = None  # (lat, lon) degrees of world (0, 0); None = no GPS tags
+    capture_start: str = "2024-06-01T00:00:00"  # ISO 8601 capture time of the first frame (UTC without a zone)
+    capture_interval: float = 0.3  # seconds between consecutive frames
 
 
 @dataclass
@@ -182,6 +194,17 @@ def _water_arrays(water: WaterParams) -> tuple[torch.Tensor, torch.Tensor, torch
     return tuple(torch.tensor(v, dtype=F64) for v in (water.beta_D, water.beta_B, water.B_inf))  # type: ignore
 
 
+def surface_colour(world: PhotoWorld, xy: torch.Tensor, ambient: float) -> torch.Tensor:
+    """Clean radiance J of the seabed at world points xy [M, 2] (metres): albedo · (ambient + (1 − ambient) ·
+    lambert), clipped to [0, 1]; view independent, in the albedo's encoding (the photos' sRGB values).  # [M, 3]
+    float64"""
+    n = normals(world.terrain, xy)
+    light = torch.tensor(LIGHT_DIR, dtype=F64)
+    lambert = (n @ (light / torch.linalg.norm(light))).clamp(min=0)
+    albedo = mosaic_albedo(world.photos, world.mosaic, xy).to(F64)
+    return (albedo * (ambient + (1 - ambient) * lambert)[:, None]).clamp(0, 1)
+
+
 def render_view(world: PhotoWorld, view: View, supersample: int, water: WaterParams, ambient: float,
                 distortion: tuple[float, float] = NO_DISTORTION, water_space: str = "srgb"
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -213,11 +236,7 @@ def _render_rows(world: PhotoWorld, view: View, s: int, water: WaterParams, ambi
     J = torch.zeros_like(d)
     if hit.any():
         p = o[hit] + t[hit, None] * d[hit]
-        n = normals(world.terrain, p[:, :2])
-        light = torch.tensor(LIGHT_DIR, dtype=F64)
-        lambert = (n @ (light / torch.linalg.norm(light))).clamp(min=0)
-        albedo = mosaic_albedo(world.photos, world.mosaic, p[:, :2]).to(F64)
-        J[hit] = (albedo * (ambient + (1 - ambient) * lambert)[:, None]).clamp(0, 1)
+        J[hit] = surface_colour(world, p[:, :2], ambient)
     if linear:
         J = srgb_to_linear(J)
     bd, bb, binf = _water_arrays(water)
@@ -302,11 +321,16 @@ def iter_photo_scene(cfg: PhotoSynthConfig, world: PhotoWorld | None = None, com
 def generate_photo_scene(cfg: PhotoSynthConfig, out_dir: str | Path) -> Path:
     """Render a photo-family scene and write it to ``out_dir`` (layout in the module docstring)."""
     t0 = time.perf_counter()
+    geo = WorldGeo(cfg.gps_origin) if cfg.gps_origin is not None else None  # bad records fail before rendering
+    start = parse_start(cfg.capture_start)
     world, rendered = iter_photo_scene(cfg)
     out = Path(out_dir)
     distortion = distortion_pair(cfg.distortion)
     views = write_scene_files(out, rendered, cfg.views, distortion, cfg.n_points,
                               np.random.default_rng([cfg.seed, 505]))
+    write_survey_records(out, frame_records(
+        [sv.view for sv in views], world.terrain, altimeter_noise=cfg.altimeter_noise,
+        rng=np.random.default_rng([cfg.seed, 606]), start=start, interval=cfg.capture_interval, geo=geo))
     water = PHOTO_WATER_PRESETS[cfg.preset]
     centres = [sv.view.center for sv in views]
     meta = {
@@ -320,9 +344,16 @@ def generate_photo_scene(cfg: PhotoSynthConfig, out_dir: str | Path) -> Path:
             cfg.width, cfg.height, cfg.supersample, cfg.max_rays_per_view)),
         "depth": "camera-space z in metres (depth/*.npy, box-filtered); r = depth * ray_length_factor at the "
                  f"pixel centre; {FAR:g} where a ray hits nothing",
-        "world": "metres, z up, seabed near z = 0; poses in sparse_gt are cam_from_world",
+        "world": "metres, z up, x east, y north, seabed near z = 0; poses in sparse_gt are cam_from_world",
         "textures": {"dir": str(world.textures_dir), "photos": list(world.photos.names),
                      "source": "EUVP GTr_A (FUnIE-GAN test set), enhanced photos used as albedo"},
+        "survey_records": {
+            "file": RECORDS_FILE, "exif": "pipeline.synth.exif_records",
+            "altimeter": "EXIF SubjectDistance = true distance along the optical axis * (1 + N(0, noise^2))",
+            "altimeter_noise": cfg.altimeter_noise if cfg.altimeter_noise is not None and cfg.altimeter_noise >= 0
+            else None,
+            "gps": geo.to_json() if geo is not None else None,
+        },
         "generator": dataclasses.asdict(cfg),
         "path_length_m": float(sum(np.linalg.norm(a - b) for a, b in zip(centres, centres[1:]))),
     }
