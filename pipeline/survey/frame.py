@@ -15,6 +15,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+import pyproj
 
 from pipeline.survey.records import FrameRecord
 
@@ -129,8 +130,6 @@ def georeference(local: SurveyFrame, centres: dict[str, np.ndarray], records: di
     if len(names) < GPS_MIN_FRAMES:
         note = "no GPS on the frames" if not names else f"GPS on only {len(names)} frames"
         return GpsFit(local, False, None, None, None, len(names), note)
-    import pyproj  # lazy: PROJ's database loads in ~0.3 s, only surveys with GPS need it
-
     lat = np.array([records[n].lat for n in names])
     lon = np.array([records[n].lon for n in names])
     epsg = utm_epsg(float(np.median(lat)), float(np.median(lon)))

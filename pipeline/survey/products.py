@@ -15,13 +15,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from pipeline.survey.geotiff import Grid, write_cog, write_preview
-from pipeline.survey.terrain import height_range, hillshade, rugosity, tile_stats
 
 from pipeline.job.layout import JobLayout
+from pipeline.survey.geotiff import Grid, write_cog, write_preview
 from pipeline.survey.measure import SurveyGeometry
 from pipeline.survey.ortho import PhotoCache, PhotoSource, make_mosaics
 from pipeline.survey.surface import MapGrid, coarse_dem, surface_points
+from pipeline.survey.terrain import height_range, hillshade, rugosity, tile_stats
 
 log = logging.getLogger(__name__)
 

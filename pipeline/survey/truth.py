@@ -16,6 +16,8 @@ import json
 from pathlib import Path
 
 import numpy as np
+import rasterio
+from rasterio.windows import Window
 
 from pipeline.job.layout import JobLayout
 from pipeline.scene.align import fit_similarity
@@ -23,16 +25,14 @@ from pipeline.scene.records import Scene
 from pipeline.survey.measure import SurveyGeometry
 from pipeline.survey.surface import MapGrid
 from pipeline.synth.ground_truth import load_ground_truth
-from pipeline.synth.survey_truth import true_surface
+from pipeline.synth.survey_truth import load_surface_truth
 
 MAX_SCORED = 2048  # cells per side scored (a central window of larger grids)
 PATCH = 64  # checkpoint patch side, cells
 MIN_PATCH_VALID = 0.9
 
 
-def _read(path: Path, window) -> np.ndarray:
-    import rasterio  # lazy: GDAL (~0.3 s), only the scoring of generated scenes reads the files back here
-
+def _read(path: Path, window: Window) -> np.ndarray:
     with rasterio.open(path) as ds:
         return np.moveaxis(ds.read(window=window), 0, -1)
 
@@ -85,8 +85,6 @@ def score_products(job: Path, gt_root: Path, geom: SurveyGeometry, grid: MapGrid
     scale = geom.scale.metres_per_unit
     out: dict = {"true_metres_per_unit": sim.scale,
                  "scale_error": None if scale is None else scale / sim.scale - 1}
-    from rasterio.windows import Window  # lazy: see _read
-
     h, w = min(grid.height, MAX_SCORED), min(grid.width, MAX_SCORED)
     r0, c0 = (grid.height - h) // 2, (grid.width - w) // 2
     win = Window(c0, r0, w, h)
@@ -95,7 +93,9 @@ def score_products(job: Path, gt_root: Path, geom: SurveyGeometry, grid: MapGrid
     seen = np.isfinite(dem)
     world = geom.frame.to_world(np.stack([x[seen], y[seen], dem[seen]], 1))
     p = sim.scale * world @ sim.R.T + sim.t  # the truth's world, metres
-    z_true, colour = true_surface(gt.scene_root or gt_root, p[:, 0], p[:, 1])
+    truth = load_surface_truth(gt.scene_root or gt_root)
+    z_true, _ = truth.at(p[:, 0], p[:, 1])
+    _, colour = truth.at(p[:, 0], p[:, 1], cell=grid.gsd * sim.scale / geom.frame.scale)  # a cell's mean colour
     err = p[:, 2] - z_true
     range_m = float(np.median(list(geom.distances.values()))) * sim.scale
     out["elevation"] = {"rmse_m": float(np.sqrt(np.mean(err**2))), "bias_m": float(np.mean(err)),

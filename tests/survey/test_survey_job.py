@@ -1,0 +1,76 @@
+"""Issue 42 at test size: a generated survey with a ±2 % altimeter and GPS in its photos' EXIF, one whole job, and
+its products against the generator's truth: the scale, the de-watered orthomosaic against the true seabed colour on
+the same grid, its planimetric error at checkpoints, the elevation model's error, the georeference and the files."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import rasterio
+
+from pipeline.export.report import build_report, validate_report
+from pipeline.job.layout import JobLayout
+from pipeline.job.options import JobOptions
+from pipeline.job.runner import run_job
+from pipeline.survey.geotiff import validate_cog
+from pipeline.synth.photo import PhotoSynthConfig, default_textures_dir, generate_photo_scene
+
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not default_textures_dir().is_dir(),
+                                                   reason="shared/data/textures is not beside the repository")]
+
+GPS = (-9.5988, 143.7811)  # AIMS Erub's line: UTM zone 54S
+
+
+@pytest.fixture(scope="module")
+def job(tmp_path_factory):
+    root = tmp_path_factory.mktemp("survey")
+    scene = generate_photo_scene(PhotoSynthConfig(views=16, width=400, height=300, preset="medium", seed=0,
+                                                  gps_origin=GPS), root / "scene")
+    run_job(root / "job", JobOptions(source=str(scene / "images"), mode="homogeneous", iterations=600,
+                                     max_width=200, colour_space="srgb"))
+    layout = JobLayout(root / "job")
+    return layout, json.loads(layout.survey_result.read_text())
+
+
+def test_scale_from_the_altimeter_within_2_percent(job):
+    _, s = job
+    assert s["scale"]["source"] == "altimeter" and s["scale"]["frames"] >= 12
+    assert abs(s["truth"]["scale_error"]) < 0.02, s["truth"]
+
+
+def test_orthomosaic_as_good_as_the_restored_photos(job, record_property):
+    _, s = job
+    t = s["truth"]
+    record_property("ortho", t)
+    assert t["ortho_minus_photos_db"] > -1.0, t
+    assert t["restored"]["checkpoints"] >= 4 and t["restored"]["planimetric_px_max"] <= 2.0, t["restored"]
+    assert t["water"]["psnr"] < t["restored"]["psnr"] - 3  # the water was there, and it came off
+
+
+def test_elevation_within_half_a_percent_of_the_range(job):
+    _, s = job
+    e = s["truth"]["elevation"]
+    assert e["rmse_share_of_range"] <= 0.005, e
+
+
+def test_products_are_valid_cogs_in_utm_54s_and_in_the_report(job):
+    layout, s = job
+    assert s["frame"]["georeferenced"] and s["frame"]["crs"] == "EPSG:32754", s["frame"]
+    for path in (layout.ortho, layout.ortho_water, layout.ortho_confidence, layout.dem):
+        ok, errors, _ = validate_cog(path)
+        assert ok, (path, errors)
+        with rasterio.open(path) as ds:
+            assert ds.crs.to_epsg() == 32754 and ds.res[0] == pytest.approx(s["grid"]["gsd"])
+            assert ds.width == s["grid"]["width"] and ds.overviews(1) or ds.width < 512
+    with rasterio.open(layout.dem) as ds:
+        dem = ds.read(1)
+    assert np.isfinite(dem).mean() > 0.5 and np.nanstd(dem) > 0.01  # relief in metres, nodata outside
+    assert 1.0 < s["terrain"]["rugosity"] < 1.5
+    for p in (layout.ortho_preview, layout.ortho_water_preview, layout.hillshade_preview):
+        assert p.stat().st_size > 1000
+    report = build_report(layout.root)
+    validate_report(report)
+    assert report["survey"]["scale"]["source"] == "altimeter"
+    assert report["model"]["metres_per_unit_source"].startswith("ground truth")
