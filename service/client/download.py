@@ -9,7 +9,7 @@ import hashlib
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import TYPE_CHECKING
 
 from service.client.errors import ClientError
@@ -53,8 +53,10 @@ class DownloadReport:
 def select(artifacts: Sequence[Artifact], patterns: Sequence[str]) -> list[Artifact]:
     """The artifacts any of ``patterns`` picks; all of them when none is given. A pattern is a glob over the
     path (``*`` crosses '/': ``*.ply``, ``output/restored/*``); one without '/' also matches the file's own name
-    (``report.json``) or any folder on its path (``restored`` picks ``output/restored/`` and
-    ``output/renders/restored/``); a trailing '/' (``output/restored/``) picks that folder."""
+    (``report.json``), that name without its extension (``reconstruction`` picks the .ply and the .spz) or any
+    folder on its path (``restored`` picks ``output/restored/`` and ``output/renders/restored/``), so ``survey``
+    picks the survey stage's ``survey.json`` and its products in ``output/survey/``; a trailing '/'
+    (``output/restored/``) picks that folder."""
     if not patterns:
         return list(artifacts)
 
@@ -64,7 +66,8 @@ def select(artifacts: Sequence[Artifact], patterns: Sequence[str]) -> list[Artif
             return path.startswith(pat) or f"/{pat}" in f"/{path}"
         if fnmatch.fnmatchcase(path, pat):
             return True
-        return "/" not in pat and any(fnmatch.fnmatchcase(p, pat) for p in parts)
+        stem = PurePosixPath(parts[-1]).stem
+        return "/" not in pat and any(fnmatch.fnmatchcase(p, pat) for p in (*parts, stem))
 
     return [a for a in artifacts if any(hit(a.path, p) for p in patterns)]
 

@@ -16,6 +16,7 @@ import pytest
 from svc_helpers import free_port
 
 from cli.main import main
+from pipeline.job.layout import JobLayout
 from service.client.cli import KEY_ENV, SERVER_ENV
 from service.client.download import local_path, select
 from service.client.remote import Artifact, ClientError, ServiceClient
@@ -65,6 +66,23 @@ def test_select_by_glob_and_folder() -> None:
     assert [a.path for a in select(arts, ["reconstruction.ply", "ingest.*"])] == ["ingest.json",
                                                                                    "output/reconstruction.ply"]
     assert select(arts, ["nothing*"]) == []
+
+
+def test_select_survey_picks_its_result_and_products() -> None:
+    """``--only survey``: the survey stage's survey.json and everything in output/survey/ (the GeoTIFFs and their
+    previews), nothing else; a name without its extension picks each file of that name."""
+    layout = JobLayout("job")
+    survey = [layout.relative(p) for p in (layout.survey_result, layout.ortho, layout.ortho_water,
+                                           layout.ortho_confidence, layout.dem, layout.ortho_preview,
+                                           layout.ortho_water_preview, layout.hillshade_preview)]
+    others = [layout.relative(p) for p in (layout.ply, layout.spz, layout.report_json, layout.ingest)]
+    arts = [Artifact(p, 1, "0", f"/u/{p}") for p in (*others, *survey)]
+    assert [a.path for a in select(arts, ["survey"])] == survey
+    assert [a.path for a in select(arts, ["reconstruction"])] == [layout.relative(layout.ply),
+                                                                   layout.relative(layout.spz)]
+    assert [a.path for a in select(arts, ["*.tif"])] == survey[1:5]
+    assert [a.path for a in select(arts, ["ortho"])] == [layout.relative(layout.ortho),
+                                                         layout.relative(layout.ortho_preview)]
 
 
 @pytest.mark.parametrize("bad", ["../x", "/etc/passwd", "a/../../x", "a//b", "./a"])

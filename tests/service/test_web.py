@@ -8,6 +8,7 @@ import re
 
 import pytest
 
+from pipeline.job.layout import JobLayout
 from service.jobs.options import CLIENT_OPTIONS
 from service.web.page import STATIC_DIR
 
@@ -48,3 +49,15 @@ def test_the_api_still_wants_a_key(api):
     r = api.get("/v1/jobs")
     assert r.status_code == 401
     assert r.json()["error"]["code"] == "unauthorized"
+
+
+def test_survey_map_spells_the_layouts_names():
+    """surveymap.js names the survey stage's files in JavaScript; they are JobLayout's (pipeline/job/layout.py)."""
+    js = (STATIC_DIR / "surveymap.js").read_text(encoding="utf-8")
+    layout = JobLayout("job")
+    assert f'const DIR = "{layout.relative(layout.survey)}/";' in js
+    assert f'const RESULT = "{layout.relative(layout.survey_result)}";' in js
+    assert f'const REPORT = "{layout.relative(layout.report_json)}";' in js
+    for p in (layout.ortho, layout.ortho_water, layout.ortho_confidence, layout.dem, layout.ortho_preview,
+              layout.ortho_water_preview, layout.hillshade_preview):
+        assert f"`${{DIR}}{p.name}`" in js, p.name

@@ -1,7 +1,8 @@
 // One job: state and progress (polled until it ends), stages with their timings, the log tail, and once results
-// exist the report, the gallery, the water maps, the 3D view and the downloads. Every file is fetched with the key
-// and shown through a blob: URL.
+// exist the report, the gallery, the water maps, the survey map (surveymap.js; only for jobs with survey
+// products), the 3D view and the downloads. Every file is fetched with the key and shown through a blob: URL.
 import { ApiError, authHeaders, getBlob, getJson, postJson, request } from "./api.js";
+import { showSurveyMap, surveyProducts } from "./surveymap.js";
 import { $, $$, bytes, el, errorText, message, saveBlob, seconds, show, stateBadge, TERMINAL } from "./ui.js";
 
 const POLL_MS = 1500;
@@ -19,6 +20,7 @@ let artifacts = null;   // the listing, once the job is done
 let loaded = new Set(); // tabs whose content was built
 let blobUrls = [];
 let viewer = null;
+let surveyMap = null;   // the survey map's handle ({dispose}) once built
 let go = () => {};
 
 function url(path) { return `/v1/jobs/${encodeURIComponent(job)}${path}`; }
@@ -102,6 +104,7 @@ async function poll() {
 async function loadArtifacts() {
   artifacts = (await getJson(url("/artifacts"))).artifacts;
   renderDownloads();
+  show($(".tabs [data-tab=survey]"), surveyProducts(artifacts) !== null);
   const tab = $(".tabs .active")?.dataset.tab;
   if (tab) openTab(tab);
 }
@@ -118,8 +121,7 @@ function renderDownloads() {
     el("td", {}, el("button", { type: "button", class: "ghost small", onclick: () => download(a.path) }, "download")))));
 }
 
-async function download(path) {
-  const msg = $("#download-msg");
+async function download(path, msg = $("#download-msg")) {
   msg.textContent = `Downloading ${path}…`;
   try {
     const name = path === "bundle" ? `${job}.zip` : path.split("/").pop();
@@ -230,7 +232,21 @@ async function showViewer() {
   }
 }
 
-const TABS = { report: showReport, gallery: showGallery, maps: showMaps, viewer: showViewer };
+async function showSurvey() {
+  const id = job;
+  const msg = $("#survey-map-msg");
+  const products = surveyProducts(artifacts);
+  if (!products) { message(msg, "This job made no survey products."); return; }
+  const artifact = (path) => url(`/artifacts/${path}`);
+  const map = await showSurveyMap($("#survey-map"), products, {
+    fetchJson: (path) => getJson(artifact(path)), fetchBlob: (path) => getBlob(artifact(path)), track, download,
+  });
+  if (id !== job) { map.dispose(); return; }
+  surveyMap = map;
+  message(msg, "");
+}
+
+const TABS = { report: showReport, gallery: showGallery, maps: showMaps, survey: showSurvey, viewer: showViewer };
 
 function openTab(name) {
   for (const b of $$(".tabs [data-tab]")) b.classList.toggle("active", b.dataset.tab === name);
@@ -272,18 +288,22 @@ function reset() {
   clearTimeout(timer);
   timer = null;
   if (viewer) { try { viewer.dispose(); } catch { /* already gone */ } viewer = null; }
+  if (surveyMap) { surveyMap.dispose(); surveyMap = null; }
   for (const u of blobUrls) URL.revokeObjectURL(u);
   blobUrls = [];
   artifacts = null;
   loaded = new Set();
   logOffset = null;
-  for (const id of ["#job-log", "#stages-body", "#gallery", "#photos", "#maps", "#maps-view", "#files-body", "#viewer"]) {
+  for (const id of ["#job-log", "#stages-body", "#gallery", "#photos", "#maps", "#maps-view", "#files-body", "#viewer",
+    "#survey-map"]) {
     $(id).replaceChildren();
   }
   const frame = $("#report-frame");
   frame.removeAttribute("srcdoc");
   show(frame, false);
   show($("#report-msg"), true);
+  show($(".tabs [data-tab=survey]"), false);
+  message($("#survey-map-msg"), "Loading the survey map…");
   message($("#job-error"), "");
   show($("#job-summary"), false);
   show($("#job-body"), false);
