@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.job.options import JobOptions, parse_scale_bars
-from pipeline.scene.records import LensCamera, View
+from pipeline.scene.records import LensCamera, Scene, View
+from pipeline.scene.seen import view_point_ranges
 from pipeline.survey.frame import GpsFit, SurveyFrame, georeference, plane_frame
 from pipeline.survey.marks import ScaleBarError, bar_length_units
 from pipeline.survey.records import FrameRecord
@@ -52,12 +53,32 @@ def resolve_telemetry(opts: JobOptions, records_dir: Path) -> Path | None:
                             f"({', '.join(p.name for p in kept) or 'none'})")
 
 
-def measure_survey(model: TrainedModel, views: list[View], points: np.ndarray, lenses: dict[str, LensCamera],
+POINT_WINDOW = 0.3  # the sparse points' stand-in for the altimeter: this share of the image around its centre
+
+
+def sparse_distance(scene: Scene, view: View) -> float | None:
+    """The view's camera-to-bottom distance from the sparse points it saw near its centre (median range; None
+    with fewer than 5): the stand-in where the render shows no surface at the centre."""
+    xy, ranges = view_point_ranges(scene, view)
+    c = view.camera
+    near = ((np.abs(xy[:, 0] - c.cx) < POINT_WINDOW * c.width / 2)
+            & (np.abs(xy[:, 1] - c.cy) < POINT_WINDOW * c.height / 2))
+    return float(np.median(ranges[near])) if near.sum() >= 5 else None
+
+
+def measure_survey(model: TrainedModel, views: list[View], scene: Scene, lenses: dict[str, LensCamera],
                    records: dict[str, FrameRecord], opts: JobOptions) -> SurveyGeometry:
     """Depths, scale and frame of a trained job (module docstring)."""
     warnings = []
+    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
     depths = {vd.view.name: vd for vd in render_depths(model, views)}
     distances = {n: d for n, vd in depths.items() if (d := centre_distance(vd)) is not None}
+    fallback = {n: d for n, vd in depths.items()
+                if n not in distances and (d := sparse_distance(scene, vd.view)) is not None}
+    if fallback:
+        warnings.append(f"{len(fallback)} views show no rendered surface at their centre: their camera-to-bottom "
+                        f"distance is the sparse points' there")
+        distances.update(fallback)
     altimeter = {n: r.distance_m for n, r in records.items() if r.distance_m is not None}
     alt = altimeter_scale(altimeter, distances)
     bars = []

@@ -62,7 +62,7 @@ def stage_survey(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
     except ValueError as e:
         records = frame_records({v.name: images[v.name] for v in views if v.name in images})
         warnings.append(f"telemetry not used: {e}")
-    geom = measure_survey(model, views, scene.points, lenses, records, opts)
+    geom = measure_survey(model, views, scene, lenses, records, opts)
     geom.warnings[:0] = warnings
     ctx.on_progress("survey", 0.1, f"scale: {geom.scale.source or 'none'}; frame: {geom.frame.crs_name}")
     frame = geom.frame

@@ -38,7 +38,7 @@ def scene_config(scene_dir: str | Path) -> PhotoSynthConfig:
     """The generator config a photo-family scene was made with (its water.json ``generator``)."""
     meta = json.loads((Path(scene_dir) / TRUE_WATER_FILE).read_text())
     if meta.get("family") != "photo" or "generator" not in meta:
-        raise ValueError(f"{scene_dir} is not a generated photo-family scene (water.json family "
+        raise ValueError(f"{scene_dir} is not a generated photo-family scene ({TRUE_WATER_FILE} family "
                          f"{meta.get('family')!r})")
     tuples = {f.name for f in dataclasses.fields(PhotoSynthConfig) if "tuple" in str(f.type)}
     data = {k: (_as_tuple(v) if k in tuples and v is not None else v) for k, v in meta["generator"].items()}

@@ -299,7 +299,7 @@ def add_client_commands(sub) -> None:
                    help="only these artifacts (repeatable): a glob over the artifact's path (GET "
                         "/v1/jobs/JOB/artifacts lists them), e.g. '*.ply'; without '/' it also matches a file or "
                         "folder name, or a file name without its extension: 'restored' (the restored photos and "
-                        "renders), 'survey' (survey.json and the orthomosaics, DEM and previews)")
+                        "renders), 'survey' (the survey stage's result and the orthomosaics, DEM and previews)")
     s.add_argument("--bundle", action="store_true", help="everything as one zip, <out>/<job>.zip (not resumable)")
     s.set_defaults(func=cmd_download)
 

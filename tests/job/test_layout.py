@@ -22,13 +22,16 @@ FILE_NAMES = ("job.json", "ingest.json", "classify.json", "water.json", "latest.
               "recovery.json", "collapsed.pt", "evaluate.json", "reconstruction.ply", "reconstruction.spz",
               "cameras.json", "report.json", "report.html",
               "speed_vs_error.png", ".stages", ".artifacts.json", "manifest.json", "log.txt", "source.json",
-              "restore.json", ".previews")
+              "restore.json", ".previews", "survey.json", "ortho.tif", "ortho_water.tif", "ortho_confidence.tif",
+              "dem.tif", "ortho.jpg", "ortho_water.jpg", "dem_hillshade.png")
 # Folders whose names are ordinary words elsewhere ("train" the stage, "input" a report key): spelled as a path
 # (``x / "train"``, ``"train/..."``) they are the job folder's.
-FOLDER_NAMES = ("train", "output", "evaluate", "input", "upload", "true_camera", "renders", "confidence")
+FOLDER_NAMES = ("train", "output", "evaluate", "input", "upload", "true_camera", "renders", "confidence", "survey",
+                "records")
 # ``images/`` and ``scene/`` are not checked: a generated scene and SfM's output folder have their own.
 # Allowed outside layout.py: a generated scene's true water (a scene path: pipeline.synth.water.TRUE_WATER_FILE).
-ALLOWED = {"water.json": {Path("pipeline/synth/water.py")}}
+# A registered survey folder's own record (service.surveys, a folder of sets, not a job) is also "survey.json".
+ALLOWED = {"water.json": {Path("pipeline/synth/water.py")}, "survey.json": {Path("service/surveys/registry.py")}}
 
 _NAME_RES = {n: re.compile(rf"(?<![\w.-]){re.escape(n)}(?![\w-])") for n in FILE_NAMES}
 _FOLDER_RE = re.compile(rf"(?:^|[\s(\"'`/])(?:{'|'.join(FOLDER_NAMES)})/")
@@ -112,6 +115,11 @@ def test_job_layout_paths():
     rel = {k: j.relative(p) if p != j.root else "" for k, p in _paths(j).items()}
     assert rel == {
         "options": "job.json", "images": "images", "unpacked": "upload", "ingest": "ingest.json", "scene": "scene",
+        "records": "records", "survey_result": "survey.json", "survey": "output/survey",
+        "ortho": "output/survey/ortho.tif", "ortho_water": "output/survey/ortho_water.tif",
+        "ortho_confidence": "output/survey/ortho_confidence.tif", "dem": "output/survey/dem.tif",
+        "ortho_preview": "output/survey/ortho.jpg", "ortho_water_preview": "output/survey/ortho_water.jpg",
+        "hillshade_preview": "output/survey/dem_hillshade.png",
         "classify": "classify.json", "legacy_classify": "water.json", "train": "train",
         "checkpoint": "train/latest.pt", "train_result": "train/train.json", "selection": "train/selection.json",
         "train_config": "train/config.json", "recovery": "train/recovery.json", "collapsed": "train/collapsed.pt",

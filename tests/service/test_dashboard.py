@@ -329,7 +329,7 @@ def _check_survey_facts(page, survey: dict) -> None:
     shown = smap.facts(page)
     grid, terrain, frame = survey.get("grid") or {}, survey.get("terrain") or {}, survey.get("frame") or {}
     expected = {"gsd": grid.get("gsd"), "area": grid.get("area"), "rugosity": terrain.get("rugosity"),
-                "height": (terrain.get("height") or {}).get("range")}
+                "height": (terrain.get("height") or {}).get("robust_range")}
     for key, value in expected.items():
         if value is None:
             assert key not in shown, (key, shown)

@@ -5,6 +5,7 @@ the same grid, its planimetric error at checkpoints, the elevation model's error
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,10 +13,16 @@ import rasterio
 
 from pipeline.export.report import build_report, validate_report
 from pipeline.job.layout import JobLayout
-from pipeline.job.options import JobOptions
+from pipeline.job.options import JobOptions, parse_scale_bars
 from pipeline.job.runner import run_job
+from pipeline.restore.views import lens_cameras
 from pipeline.survey.geotiff import validate_cog
+from pipeline.survey.marks import bar_length_units
+from pipeline.survey.surface import render_depths
+from pipeline.synth.ground_truth import load_ground_truth
 from pipeline.synth.photo import PhotoSynthConfig, default_textures_dir, generate_photo_scene
+from pipeline.train.checkpoint import load_checkpoint
+from pipeline.train.model import model_from_state, training_views
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not default_textures_dir().is_dir(),
                                                    reason="shared/data/textures is not beside the repository")]
@@ -74,3 +81,29 @@ def test_products_are_valid_cogs_in_utm_54s_and_in_the_report(job):
     validate_report(report)
     assert report["survey"]["scale"]["source"] == "altimeter"
     assert report["model"]["metres_per_unit_source"].startswith("ground truth")
+
+
+def test_a_scale_bar_marked_in_a_photo_gives_the_true_scale(job):
+    """Two pixels of one photo, 100 px apart, and their true distance on the seabed (the generator's depth and
+    camera): the bar's scale matches the alignment's true scale within 2 %."""
+    layout, s = job
+    gt = load_ground_truth(Path(JobOptions.from_json(json.loads(layout.options.read_text())).source).parent)
+    state = load_checkpoint(layout.checkpoint)
+    model = model_from_state(state)
+    views = training_views(layout.root, state)
+    name = views[len(views) // 2].name
+    depths = {vd.view.name: vd for vd in render_depths(model, [v for v in views if v.name == name])}
+    true_view = next(v for v in gt.scene.views if v.name == name)
+    depth = np.load(gt.root / "depth" / f"{Path(name).stem}.npy")
+    c = true_view.camera
+    (x1, y1), (x2, y2) = (150, 150), (250, 150)
+
+    def world(x, y):
+        z = float(depth[y, x])
+        cam = np.array([(x + 0.5 - c.cx) / c.fx * z, (y + 0.5 - c.cy) / c.fy * z, z])
+        return true_view.R.T @ (cam - true_view.t)
+
+    metres = float(np.linalg.norm(world(x1, y1) - world(x2, y2)))
+    (bar,) = parse_scale_bars(f"{name}:{x1},{y1}:{x2},{y2}:{metres}")
+    _, units = bar_length_units(bar, depths, lens_cameras(layout.scene))
+    assert metres / units == pytest.approx(s["truth"]["true_metres_per_unit"], rel=0.02)

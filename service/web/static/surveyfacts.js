@@ -41,10 +41,15 @@ function frameText(frame) {
   return frame.crs && frame.crs_name && frame.crs !== frame.crs_name ? `${frame.crs_name} (${frame.crs})` : name;
 }
 
+// the 2-98 % height range (robust to a stray cell), with the whole span beside it
+function heightRange(h) {
+  return isNum(h.robust_range) ? h.robust_range : h.range;
+}
+
 function heightText(h, metric) {
-  if (!isNum(h.range)) return null;
+  if (!isNum(heightRange(h))) return null;
   const span = isNum(h.min) && isNum(h.max) ? ` (${length(h.min, metric)} to ${length(h.max, metric)})` : "";
-  return `${length(h.range, metric)}${span}`;
+  return `${length(heightRange(h), metric)} (2-98 %)${span}`;
 }
 
 // [{key, label, text, value}]: value is the number (or string) survey.json holds, text what a person reads
@@ -62,7 +67,7 @@ export function facts(survey) {
     ["georeferenced", "georeferenced", georef, frame.georeferenced],
     ["area", "area", isNum(grid.area) ? `${num(grid.area)} ${area}` : null, grid.area],
     ["rugosity", "rugosity", isNum(terrain.rugosity) ? num(terrain.rugosity) : null, terrain.rugosity],
-    ["height", "height range", heightText(height, metric), height.range],
+    ["height", "height range", heightText(height, metric), heightRange(height)],
     ["scale", "metric scale", scaleText(scale, metric), scale.metres_per_unit],
     ["size", "mosaic", isNum(grid.width) && isNum(grid.height) ? `${grid.width} × ${grid.height} px` : null,
       isNum(grid.width) ? `${grid.width}x${grid.height}` : null],
