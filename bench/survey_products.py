@@ -37,7 +37,8 @@ job = Path(sys.argv[1])
 opts = JobOptions.from_json(json.loads((job / "job.json").read_text()))
 t = time.perf_counter()
 res = stage_survey(job, opts, StageContext())
-print(json.dumps({"seconds": time.perf_counter() - t, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps({"seconds": time.perf_counter() - t, "peak_mb": peak,
                   "grid": res.get("grid"), "truth": res.get("truth"), "scale": {k: v for k, v in res["scale"].items()
                   if k != "per_frame"}, "frame": res["frame"]}))
 """

@@ -61,7 +61,7 @@ def default_gsd(geom: SurveyGeometry, lenses: dict) -> float:
 
 
 def view_bounds(vd, frame) -> tuple[float, float, float, float] | None:
-    pts, _ = surface_points(vd, frame, step=4)
+    pts = surface_points(vd, frame, step=4)[0]
     if len(pts) < 16:
         return None
     lo, hi = np.percentile(pts[:, :2], 0.5, axis=0), np.percentile(pts[:, :2], 99.5, axis=0)
@@ -81,6 +81,19 @@ def product_grid(bounds: list[tuple[float, float, float, float]], gsd: float, wa
     x0, y0 = math.floor(x0 / gsd) * gsd, math.floor(y0 / gsd) * gsd
     x1, y1 = math.ceil(x1 / gsd) * gsd, math.ceil(y1 / gsd) * gsd
     return MapGrid(x0, y1, gsd, max(1, round((x1 - x0) / gsd)), max(1, round((y1 - y0) / gsd)))
+
+
+def crop_to(grid: MapGrid, dem: np.ndarray, factor: int) -> tuple[MapGrid, np.ndarray]:
+    """The product grid and the coarse DEM cut to the DEM's trusted cells (the footprints' far, oblique fringes
+    that the DEM left out would be empty mosaic)."""
+    rows, cols = np.nonzero(np.isfinite(dem).any(1))[0], np.nonzero(np.isfinite(dem).any(0))[0]
+    if not rows.size:
+        raise NoSurfaceError("no seabed was seen well enough to map (two views, near and head-on)")
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    g = MapGrid(grid.x0 + int(c0) * factor * grid.gsd, grid.y1 - int(r0) * factor * grid.gsd, grid.gsd,
+                int(min(grid.width - c0 * factor, (c1 - c0) * factor)),
+                int(min(grid.height - r0 * factor, (r1 - r0) * factor)))
+    return g, dem[r0:r1, c0:c1]
 
 
 @dataclass(frozen=True)
@@ -116,6 +129,8 @@ def make_products(job: Path, geom: SurveyGeometry, lenses: dict, restored: dict[
     factor = max(1, int(round(train_gsd / grid.gsd)))
     dem_grid = grid.coarser(factor)
     dem = coarse_dem(dem_grid, [s.depth for s in sources], frame)
+    grid, dem = crop_to(grid, dem, factor)
+    dem_grid = grid.coarser(factor)
     on_progress(0.2, "elevation model gathered")
     shutil.rmtree(layout.survey, ignore_errors=True)
     work = layout.survey / ".work"

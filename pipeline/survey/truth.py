@@ -24,6 +24,7 @@ from pipeline.scene.align import fit_similarity
 from pipeline.scene.records import Scene
 from pipeline.survey.measure import SurveyGeometry
 from pipeline.survey.surface import MapGrid
+from pipeline.survey.terrain import rugosity
 from pipeline.synth.ground_truth import load_ground_truth
 from pipeline.synth.survey_truth import load_surface_truth
 
@@ -99,8 +100,14 @@ def score_products(job: Path, gt_root: Path, geom: SurveyGeometry, grid: MapGrid
     err = p[:, 2] - z_true
     range_m = float(np.median(list(geom.distances.values()))) * sim.scale
     out["elevation"] = {"rmse_m": float(np.sqrt(np.mean(err**2))), "bias_m": float(np.mean(err)),
+                        "median_abs_m": float(np.median(np.abs(err))),
+                        "median_abs_share_of_range": float(np.median(np.abs(err)) / (np.median(
+                            list(geom.distances.values())) * sim.scale)),
                         "camera_to_bottom_m": range_m,
                         "rmse_share_of_range": float(np.sqrt(np.mean(err**2)) / range_m), "cells": int(seen.sum())}
+    true_dem = np.full((h, w), np.nan)
+    true_dem[seen] = z_true  # the true surface under the same cells: what the DEM's rugosity should be
+    out["terrain"] = {"rugosity": rugosity(dem, grid.gsd), "rugosity_true": rugosity(true_dem, grid.gsd)}
     truth_img = np.zeros((h, w, 3))
     truth_img[seen] = colour
     for key, path in (("restored", layout.ortho), ("water", layout.ortho_water)):
