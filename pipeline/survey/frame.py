@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 GPS_MAX_RESIDUAL_M = 1.5
 GPS_MAX_RESIDUAL_SHARE = 0.25
 GPS_MIN_FRAMES = 3
+HEADING_WARN_DEG = 10.0  # an orientation less certain than this is said in the note and the warnings
 GPS_MIN_EXTENT_M = 2.0  # a track shorter than this does not fix the rotation against GPS noise (a few metres)
 
 
@@ -119,6 +120,15 @@ class GpsFit:
     scale: float | None  # metres per scene unit the fit implies (used when nothing better measured it)
     frames: int
     note: str
+    heading_sigma_deg: float | None = None  # the map's orientation's uncertainty (a line fit's: σ·√(12/N) / L)
+
+
+def heading_sigma_deg(cam_m: np.ndarray, residual_m: float) -> float:
+    """One-σ uncertainty of the fitted orientation, degrees: a line of N camera centres L metres long, each off its
+    GPS position by ``residual_m`` (RMS), fixes its direction to σ·√(12/N) / L radians."""
+    c = cam_m - cam_m.mean(0)
+    length = 2 * np.sqrt(3) * float(np.sqrt(np.linalg.eigvalsh(c.T @ c / len(c))[-1]))  # a uniform line's length
+    return float(np.degrees(np.arctan(residual_m * np.sqrt(12 / len(c)) / max(length, 1e-9))))
 
 
 def georeference(local: SurveyFrame, centres: dict[str, np.ndarray], records: dict[str, FrameRecord],
@@ -151,9 +161,14 @@ def georeference(local: SurveyFrame, centres: dict[str, np.ndarray], records: di
     R3 = np.eye(3)
     R3[:2, :2] = R
     frame = SurveyFrame(local.origin, R3 @ local.Q, local.scale * s, t, epsg, crs_name)
-    note = f"camera centres fitted to the GPS track of {len(names)} frames: RMS {resid:.2f} m over {extent:.1f} m"
+    sigma = heading_sigma_deg(s * cam, resid)
+    note = (f"camera centres fitted to the GPS track of {len(names)} frames: RMS {resid:.2f} m over {extent:.1f} m; "
+            f"orientation ±{sigma:.0f}°")
+    if sigma > HEADING_WARN_DEG:
+        note += (f" (the camera track is short against the GPS's scatter: north on the map may be off by that much; "
+                 f"the position is good to about {resid:.1f} m)")
     log.info("georeference: %s (%s)", note, crs_name)
-    return GpsFit(frame, True, resid, extent, None if scale_known else local.scale * s, len(names), note)
+    return GpsFit(frame, True, resid, extent, None if scale_known else local.scale * s, len(names), note, sigma)
 
 
 __all__ = ["GpsFit", "SurveyFrame", "fit_plane", "georeference", "plane_frame", "utm_epsg"]

@@ -14,7 +14,7 @@ import numpy as np
 from pipeline.job.options import JobOptions, parse_scale_bars
 from pipeline.scene.records import LensCamera, Scene, View
 from pipeline.scene.seen import view_point_ranges
-from pipeline.survey.frame import GpsFit, SurveyFrame, georeference, plane_frame
+from pipeline.survey.frame import HEADING_WARN_DEG, GpsFit, SurveyFrame, georeference, plane_frame
 from pipeline.survey.marks import ScaleBarError, bar_length_units
 from pipeline.survey.records import FrameRecord
 from pipeline.survey.scale import ScaleFit, altimeter_scale, bar_scale, choose_scale
@@ -97,6 +97,9 @@ def measure_survey(model: TrainedModel, views: list[View], scene: Scene, lenses:
     if scale is None and gps.scale is not None:
         fit = choose_scale(None, None, None, gps.scale)
     units = "m" if fit.metres_per_unit is not None else "scene units"
+    if gps.heading_sigma_deg is not None and gps.heading_sigma_deg > HEADING_WARN_DEG:
+        warnings.append(f"georeferenced, but the map's orientation is uncertain by ±{gps.heading_sigma_deg:.0f}°: "
+                        f"{gps.note}")
     if fit.outliers:
         warnings.append(f"the altimeter disagrees with the model on {len(fit.outliers)} frames (left out of the "
                         f"scale): {', '.join(fit.outliers[:5])}")

@@ -71,6 +71,7 @@ def stage_survey(job: Path, opts: JobOptions, ctx: StageContext) -> dict:
         "frame": {"crs": f"EPSG:{frame.epsg}" if frame.epsg else None, "crs_name": frame.crs_name,
                   "georeferenced": geom.gps.georeferenced, "gps_residual_m": geom.gps.residual_m,
                   "gps_extent_m": geom.gps.extent_m, "gps_frames": geom.gps.frames, "units": geom.units,
+                  "heading_sigma_deg": geom.gps.heading_sigma_deg,
                   "note": geom.gps.note, "up": "the survey plane's normal (heights are above the fitted plane)"},
         "records": {"altimeter_frames": sum(r.distance_m is not None for r in records.values()),
                     "gps_frames": sum(r.lat is not None for r in records.values()),

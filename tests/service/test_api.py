@@ -139,11 +139,24 @@ def test_log_has_the_upload_story_and_pages_by_offset(api, good_zip) -> None:
 
 
 @pytest.mark.parametrize("data, message", [({"preset": "bogus"}, "preset"), ({"iterations": "0"}, "iterations"),
-                                           ({"metric_scale": "-1"}, "metric_scale"), ({"colour": "red"}, "colour")])
+                                           ({"metric_scale": "-1"}, "metric_scale"), ({"colour": "red"}, "colour"),
+                                           ({"telemetry": "/etc/passwd.csv"}, "telemetry"),
+                                           ({"telemetry": "../up.csv"}, "telemetry"),
+                                           ({"scale_bar": "a.jpg:1,2:3,4"}, "scale_bar"),
+                                           ({"ortho_gsd": "0"}, "ortho_gsd")])
 def test_invalid_options_are_refused_before_any_work(api, good_zip, data, message) -> None:
     body = assert_error(create(api, "alice", good_zip, data=data), 422, "invalid_options")
     assert message in body["error"]["message"]
     assert not any(api.settings.jobs_dir.iterdir())
+
+
+def test_survey_options_reach_the_job(api, good_zip) -> None:
+    r = create(api, "alice", good_zip, data={"ortho": "false", "ortho_gsd": "0.005", "telemetry": "frames.csv",
+                                             "scale_bar": "IMG_1.JPG:10,20:110,20:0.5"})
+    assert r.status_code == 201, r.text
+    o = r.json()["options"]
+    assert (o["ortho"], o["ortho_gsd"], o["telemetry"], o["scale_bar"]) == (False, 0.005, "frames.csv",
+                                                                            "IMG_1.JPG:10,20:110,20:0.5")
 
 
 def test_raw_body_upload_with_query_options(api, good_zip) -> None:

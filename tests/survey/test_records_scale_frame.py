@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import csv
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from pipeline.job.options import parse_scale_bars
-from pipeline.survey.frame import fit_plane, georeference, plane_frame, utm_epsg
+from pipeline.ingest.intake import ingest
+from pipeline.job.layout import JobLayout
+from pipeline.job.options import JobOptions, parse_scale_bars
+from pipeline.survey.frame import fit_plane, georeference, heading_sigma_deg, plane_frame, utm_epsg
+from pipeline.survey.measure import resolve_telemetry
 from pipeline.survey.records import FrameRecord, exif_record, frame_records, read_telemetry
 from pipeline.survey.scale import altimeter_scale, choose_scale
 
@@ -122,7 +126,8 @@ def test_gps_fit_turns_the_frame_to_utm_and_a_poor_fit_keeps_the_local_frame():
     recs = {f"c{i}": FrameRecord(lat=la, lon=lo) for i, (la, lo) in enumerate(zip(lat, lon))}
     fit = georeference(local, names, recs, scale_known=True)
     assert fit.georeferenced and fit.frame.epsg == 32754 and "UTM zone 54S" in fit.frame.crs_name
-    assert fit.residual_m < 0.01
+    assert fit.residual_m < 0.01 and fit.heading_sigma_deg < 0.5
+    assert heading_sigma_deg(np.c_[np.linspace(0, 1.5, 19), np.zeros(19)], 0.8) > 10  # Ugar's: 1.5 m of track
     assert np.allclose(fit.frame.to_map(cams)[:, :2], xy, atol=0.01)
     # a boat's GPS wandering metres off the camera track: not a fit, the local frame stays
     wander = xy + rng.normal(0, 3.0, xy.shape)
@@ -130,3 +135,20 @@ def test_gps_fit_turns_the_frame_to_utm_and_a_poor_fit_keeps_the_local_frame():
     recs = {f"c{i}": FrameRecord(lat=la, lon=lo) for i, (la, lo) in enumerate(zip(lat, lon))}
     poor = georeference(local, names, recs, scale_known=True)
     assert not poor.georeferenced and poor.frame.epsg is None and "does not fit" in poor.note
+
+
+def test_ingest_keeps_the_survey_log_and_the_options_find_it_by_name(tmp_path):
+    src = tmp_path / "line"
+    (src / "sub").mkdir(parents=True)
+    for p in sorted((ERUB / "images").glob("*.jpg"))[:3]:
+        shutil.copyfile(p, src / p.name)
+    shutil.copyfile(ERUB / "frames.csv", src / "sub" / "frames.csv")
+    (src / "notes.txt").write_text("not a record")
+    job = JobLayout(tmp_path / "job")
+    ingest(src, job.root)
+    assert sorted(p.name for p in job.records.iterdir()) == ["sub__frames.csv"]
+    found = resolve_telemetry(JobOptions(source=str(src), telemetry="frames.csv"), job.records)
+    assert found == job.records / "sub__frames.csv" and read_telemetry(found)
+    with pytest.raises(FileNotFoundError, match="sub__frames.csv"):
+        resolve_telemetry(JobOptions(source=str(src), telemetry="other.csv"), job.records)
+    assert resolve_telemetry(JobOptions(source=str(src)), job.records) is None
