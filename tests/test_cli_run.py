@@ -75,7 +75,7 @@ def test_run_then_rerun_skips_every_stage_then_render(scene, tmp_path, capsys):
     assert main(argv) == 0
     out = capsys.readouterr()
     again = _last_json(out.out)
-    assert again["skipped"] == ["ingest", "sfm", "classify", "train", "evaluate", "restore", "export"]
+    assert again["skipped"] == ["ingest", "sfm", "classify", "train", "evaluate", "restore", "survey", "export"]
     assert "skipped (already done)" in out.err  # the progress lines say so too
 
     rendered = tmp_path / "render"

@@ -7,6 +7,8 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pipeline.evaluate.plots import image_png
 from pipeline.job.layout import JobLayout
 from pipeline.scene.images import read_image, resize_area_to
@@ -27,6 +29,9 @@ def survey_pictures(job: Path) -> list[tuple[str, bytes]]:
         h, w = img.shape[:2]
         if w > SHOWN_WIDTH:
             img = resize_area_to(img, (max(1, round(h * SHOWN_WIDTH / w)), SHOWN_WIDTH))
+        elif w < SHOWN_WIDTH // 2:  # a small survey's mosaic: whole pixels enlarged, so it can be seen
+            k = SHOWN_WIDTH // 2 // w + 1
+            img = np.repeat(np.repeat(img, k, axis=0), k, axis=1)
         out.append((label, image_png(img)))
     return out
 

@@ -15,16 +15,21 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from pipeline.scene.records import View
+from pipeline.splat.gaussians import activate
+from pipeline.splat.rasterize import rasterize
 from pipeline.survey.frame import SurveyFrame
 from pipeline.train.model import TrainedModel
-from pipeline.train.render import render_outputs
+from pipeline.train.render import view_tensors
 
 log = logging.getLogger(__name__)
 
 SURFACE_ALPHA = 0.5
 CENTRE_WINDOW = 0.1  # the altimeter's footprint: this share of the image's width and height around its centre
+MIN_SPREAD = 0.005  # relative depth spread: a floor under a pixel's height uncertainty (surface_points)
+MAX_SPREAD = 0.05  # a pixel whose blend spreads more than this is two surfaces, not one: left out of the DEM
 WELL_SEEN_COS = 0.8  # a trusted cell's best view is at least this share of the survey's typical best cosine
 WELL_SEEN_RANGE = 1.5  # and at most this many times the survey's typical nearest range (well_seen)
 SMOOTH_RADIUS = 1  # cells: the DEM's denoising mean is (2k + 1)² cells (smooth)
@@ -36,6 +41,7 @@ DESPECKLE_SIGMAS = 4.0  # robust standard deviations a cell may stand out of it
 class ViewDepth:
     view: View  # the training camera
     depth: np.ndarray  # [h, w] float32 camera z, scene units; 0 where the render is not surface
+    spread: np.ndarray | None = None  # [h, w] float32: the blended Gaussians' depth spread / depth (depth_spread)
 
     def point_at(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points [N, 3] under training-camera pixel positions (u, v: pixel-centre convention) and whether
@@ -49,12 +55,35 @@ class ViewDepth:
         return (cam - self.view.t) @ self.view.R, z > 0
 
 
+def depth_spread(gaussians: dict[str, torch.Tensor], view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(expected depth E[z], relative spread sqrt(E[z²] − E[z]²) / E[z], alpha) [h, w] of one view: the
+    rasterizer blends each Gaussian's camera z and z² as its colour. Where the blend mixes surfaces at different
+    depths (a floater in front, an edge, a thick fuzzy layer) the spread is large and the expected depth lies between
+    them: on a generated survey, pixels with a spread under 1.5 % had half the depth error of all pixels."""
+    g = activate(gaussians)
+    viewmat, K = view_tensors(view, torch.device("cpu"))
+    with torch.no_grad():
+        z = g.means @ viewmat[2, :3] + viewmat[2, 3]
+        feats = torch.stack([z, z * z, torch.zeros_like(z)], 1)
+        out, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, feats, viewmat[None], K[None],
+                                  view.camera.width, view.camera.height, render_mode="RGB")
+    a = alpha[0, ..., 0].numpy().astype(np.float64)
+    o = out[0].numpy().astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ez = np.where(a > 1e-6, o[..., 0] / a, 0.0)
+        ez2 = np.where(a > 1e-6, o[..., 1] / a, 0.0)
+        spread = np.where(ez > 0, np.sqrt(np.maximum(ez2 - ez**2, 0.0)) / ez, np.inf)
+    return ez, spread, a
+
+
 def render_depths(model: TrainedModel, views: list[View]) -> list[ViewDepth]:
-    """Every view's surface depth at its training resolution."""
+    """Every view's surface depth at its training resolution, with its spread (:func:`depth_spread`)."""
     out = []
     for view in views:
-        o = render_outputs(model.gaussians, view, None, model.sh_degree, background=model.background)
-        out.append(ViewDepth(view, np.where(o.alpha >= SURFACE_ALPHA, o.depth, 0).astype(np.float32)))
+        ez, spread, alpha = depth_spread(model.gaussians, view)
+        surface = alpha >= SURFACE_ALPHA
+        out.append(ViewDepth(view, np.where(surface, ez, 0).astype(np.float32),
+                             np.where(surface, spread, np.inf).astype(np.float32)))
     return out
 
 
@@ -72,17 +101,20 @@ def centre_distance(vd: ViewDepth) -> float | None:
 
 def surface_points(vd: ViewDepth, frame: SurveyFrame, step: int = 1
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The view's surface pixels as map points [N, 3], their weights [N] (cos of the view angle / range²), the
-    cosine itself and the range (scene units)."""
+    """The view's surface pixels as map points [N, 3], their weights [N], the cosine of the view angle and the
+    range (scene units). A pixel's weight is the inverse variance of its height: range × its depth spread (at least
+    MIN_SPREAD), over the cosine; pixels spread beyond MAX_SPREAD are left out."""
     h, w = vd.depth.shape
     v, u = np.mgrid[0:h:step, 0:w:step]
     u, v = u.ravel() + 0.5, v.ravel() + 0.5
     world, ok = vd.point_at(u, v)
-    world = world[ok]
+    spread = np.full(ok.shape, MIN_SPREAD) if vd.spread is None else vd.spread[::step, ::step].ravel()
+    ok &= spread <= MAX_SPREAD
+    world, spread = world[ok], np.maximum(spread[ok], MIN_SPREAD)
     ray = world - vd.view.center
     dist = np.maximum(np.linalg.norm(ray, axis=1), 1e-12)
     cos = np.abs(ray @ frame.Q[2]) / dist
-    return frame.to_map(world), cos / dist**2, cos, dist
+    return frame.to_map(world), cos**2 / (dist * spread) ** 2, cos, dist
 
 
 @dataclass(frozen=True)

@@ -86,6 +86,9 @@ def score_products(job: Path, gt_root: Path, geom: SurveyGeometry, grid: MapGrid
     scale = geom.scale.metres_per_unit
     out: dict = {"true_metres_per_unit": sim.scale,
                  "scale_error": None if scale is None else scale / sim.scale - 1}
+    if gt.water.get("family") != "photo":  # the procedural family's seabed has no grid lookup: the scale only
+        out["note"] = "the true seabed on a grid is known for photo-family scenes only: products not scored"
+        return out
     h, w = min(grid.height, MAX_SCORED), min(grid.width, MAX_SCORED)
     r0, c0 = (grid.height - h) // 2, (grid.width - w) // 2
     win = Window(c0, r0, w, h)
@@ -99,12 +102,18 @@ def score_products(job: Path, gt_root: Path, geom: SurveyGeometry, grid: MapGrid
     _, colour = truth.at(p[:, 0], p[:, 1], cell=grid.gsd * sim.scale / geom.frame.scale)  # a cell's mean colour
     err = p[:, 2] - z_true
     range_m = float(np.median(list(geom.distances.values()))) * sim.scale
+    # the DEM's shape alone: its offset and tilt against the true surface (what the camera alignment leaves,
+    # a similarity's remaining freedom for a surface) fitted away by least squares
+    design = np.stack([np.ones(len(err)), p[:, 0] - p[:, 0].mean(), p[:, 1] - p[:, 1].mean()], 1)
+    shape_err = err - design @ np.linalg.lstsq(design, err, rcond=None)[0]
     out["elevation"] = {"rmse_m": float(np.sqrt(np.mean(err**2))), "bias_m": float(np.mean(err)),
                         "median_abs_m": float(np.median(np.abs(err))),
                         "median_abs_share_of_range": float(np.median(np.abs(err)) / (np.median(
                             list(geom.distances.values())) * sim.scale)),
                         "camera_to_bottom_m": range_m,
-                        "rmse_share_of_range": float(np.sqrt(np.mean(err**2)) / range_m), "cells": int(seen.sum())}
+                        "rmse_share_of_range": float(np.sqrt(np.mean(err**2)) / range_m), "cells": int(seen.sum()),
+                        "aligned_rmse_m": float(np.sqrt(np.mean(shape_err**2))),
+                        "aligned_rmse_share_of_range": float(np.sqrt(np.mean(shape_err**2)) / range_m)}
     true_dem = np.full((h, w), np.nan)
     true_dem[seen] = z_true  # the true surface under the same cells: what the DEM's rugosity should be
     out["terrain"] = {"rugosity": rugosity(dem, grid.gsd), "rugosity_true": rugosity(true_dem, grid.gsd)}

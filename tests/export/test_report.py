@@ -44,7 +44,7 @@ def _report(job_dir):
 
 
 def test_stage_order_puts_evaluate_between_train_and_export():
-    assert STAGES == ("ingest", "sfm", "classify", "train", "evaluate", "restore", "export")
+    assert STAGES == ("ingest", "sfm", "classify", "train", "evaluate", "restore", "survey", "export")
 
 
 def test_report_json_follows_its_schema_and_holds_real_numbers(job, record_property):
@@ -150,8 +150,8 @@ def test_report_html_stands_alone_with_every_image_embedded(job):
     html = JobLayout(job_dir).report_html.read_text()
     srcs = re.findall(r'<img[^>]*\ssrc="([^"]*)"', html)
     # 4 restored photos x (photo, restored, confidence, 2 crops) + 2 held-out views x (photo, model, restored,
-    # truth) + 2 x (A, B, depth) + the curve
-    assert len(srcs) == 4 * 5 + 2 * 4 + 2 * 3 + 1
+    # truth) + 2 x (A, B, depth) + the curve + the survey's two mosaics and hillshade
+    assert len(srcs) == 4 * 5 + 2 * 4 + 2 * 3 + 1 + 3
     for src in srcs:
         assert src.startswith("data:image/png;base64,"), src[:40]
         shape = _png_shape(base64.b64decode(src.split(",", 1)[1], validate=True))
