@@ -31,10 +31,11 @@ log = logging.getLogger("bench.survey_products")
 CHILD = """
 import json, resource, sys, time
 from pathlib import Path
+from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions, StageContext
 from pipeline.survey.stage import stage_survey
 job = Path(sys.argv[1])
-opts = JobOptions.from_json(json.loads((job / "job.json").read_text()))
+opts = JobOptions.from_json(json.loads(JobLayout(job).options.read_text()))
 t = time.perf_counter()
 res = stage_survey(job, opts, StageContext())
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -52,19 +52,19 @@ def test_orthomosaic_as_good_as_the_restored_photos(job, record_property):
     t = s["truth"]
     record_property("ortho", t)
     assert t["ortho_minus_photos_db"] > -1.0, t
-    # the median checkpoint within 2 ground pixels (measured 0.9); the worst ones are not (15 px, where the DEM is
-    # centimetres off and a photo sees the cell at an angle: issue 42's note)
-    assert t["restored"]["checkpoints"] >= 10 and t["restored"]["planimetric_px_median"] <= 2.0, t["restored"]
+    # checkpoints within 2 ground pixels: measured median 0.7, worst 1.1 (the worst bounded at 4: runs differ)
+    r = t["restored"]
+    assert r["checkpoints"] >= 8 and r["planimetric_px_median"] <= 2.0 and r["planimetric_px_max"] <= 4.0, r
     assert t["water"]["psnr"] < t["restored"]["psnr"] - 3  # the water was there, and it came off
 
 
 def test_elevation_error_stays_at_the_rendered_depths_own(job):
-    """Measured at this size: median 1.5 %, RMS 4.0 % of the camera-to-bottom distance — the rendered depth's own
+    """Measured at this size: median 1.0 %, RMS 2.3 % of the camera-to-bottom distance — the rendered depth's own
     error; issue 42 asks for an RMS of 0.5 %, which this DEM does not reach (its note). The bounds catch a DEM that
-    loses what despeckling and the well-seen mask bought (RMS 19 % without them)."""
+    loses what the spread weights, despeckling and the well-seen mask bought (RMS 19 % without them)."""
     _, s = job
     e = s["truth"]["elevation"]
-    assert e["median_abs_share_of_range"] <= 0.03 and e["rmse_share_of_range"] <= 0.08, e
+    assert e["median_abs_share_of_range"] <= 0.025 and e["rmse_share_of_range"] <= 0.08, e
     t = s["truth"]["terrain"]
     assert abs(t["rugosity"] / t["rugosity_true"] - 1) < 0.3, t
 
