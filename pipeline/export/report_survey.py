@@ -41,7 +41,7 @@ def _num(x: Any, digits: int = 3) -> str:
 
 
 def survey_sentences(s: dict) -> list[str]:
-    """The section's plain sentences (also what the dashboard says)."""
+    """The section's plain sentences."""
     scale, frame, grid = s.get("scale") or {}, s.get("frame") or {}, s.get("grid") or {}
     unit = "m" if frame.get("units") == "m" else "scene units"
     out = []

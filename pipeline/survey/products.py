@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.evaluate.evaluation import json_safe
 from pipeline.job.layout import JobLayout
 from pipeline.survey.geotiff import Grid, write_cog, write_preview
 from pipeline.survey.measure import SurveyGeometry
@@ -27,19 +28,6 @@ log = logging.getLogger(__name__)
 
 MAX_CELLS = 6e8  # beyond this the ground resolution is coarsened (with a warning), never a failed job
 TILE_STATS_M = 5.0  # side of the per-tile table's tiles, metres (scene units without a scale)
-
-
-def finite(value):
-    """``value`` with NaN and infinities as None (JSON has no NaN: an empty DEM's numbers are unknown)."""
-    if isinstance(value, dict):
-        return {k: finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [finite(v) for v in value]
-    if isinstance(value, float | np.floating):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 class NoSurfaceError(ValueError):
@@ -166,7 +154,7 @@ def make_products(job: Path, geom: SurveyGeometry, lenses: dict, restored: dict[
                   "ortho_confidence": layout.relative(layout.ortho_confidence),
                   "dem": layout.relative(layout.dem), "hillshade_preview": layout.relative(layout.hillshade_preview)})
     on_progress(0.9, "products written")
-    terrain = finite({"rugosity": rugosity(height, grid.gsd), "height": asdict(height_range(height)),
+    terrain = json_safe({"rugosity": rugosity(height, grid.gsd), "height": asdict(height_range(height)),
                       "tile_m": TILE_STATS_M,
                       "tiles": [asdict(t) for t in tile_stats(height, grid.gsd, TILE_STATS_M, (grid.x0, grid.y1))]})
     valid_share = float(mask.mean())

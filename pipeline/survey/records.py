@@ -20,11 +20,18 @@ from pathlib import Path
 
 from PIL import Image
 
-log = logging.getLogger(__name__)
+from pipeline.scene.exif_tags import (
+    GPS_LAT,
+    GPS_LAT_REF,
+    GPS_LON,
+    GPS_LON_REF,
+    IFD_EXIF,
+    IFD_GPS,
+    TAG_DATETIME_ORIGINAL,
+    TAG_SUBJECT_DISTANCE,
+)
 
-EXIF_IFD, GPS_IFD = 0x8769, 0x8825
-SUBJECT_DISTANCE, DATETIME_ORIGINAL = 0x9206, 0x9003
-GPS_LAT_REF, GPS_LAT, GPS_LON_REF, GPS_LON = 1, 2, 3, 4
+log = logging.getLogger(__name__)
 
 COLUMNS: dict[str, tuple[str, ...]] = {
     "file": ("file", "name", "image", "filename"),
@@ -60,10 +67,10 @@ def exif_record(path: Path) -> FrameRecord:
     try:
         with Image.open(path) as im:
             exif = im.getexif()
-            sub, gps = exif.get_ifd(EXIF_IFD), exif.get_ifd(GPS_IFD)
+            sub, gps = exif.get_ifd(IFD_EXIF), exif.get_ifd(IFD_GPS)
     except (OSError, ValueError, SyntaxError):
         return FrameRecord()
-    dist = sub.get(SUBJECT_DISTANCE)
+    dist = sub.get(TAG_SUBJECT_DISTANCE)
     try:
         dist = float(dist) if dist is not None else None
     except (TypeError, ValueError, ZeroDivisionError):
@@ -72,7 +79,7 @@ def exif_record(path: Path) -> FrameRecord:
         dist = None
     lat = _deg(gps.get(GPS_LAT), gps.get(GPS_LAT_REF)) if GPS_LAT in gps else None
     lon = _deg(gps.get(GPS_LON), gps.get(GPS_LON_REF)) if GPS_LON in gps else None
-    time = sub.get(DATETIME_ORIGINAL)
+    time = sub.get(TAG_DATETIME_ORIGINAL)
     if dist is None and lat is None and time is None:
         return FrameRecord()
     return FrameRecord(dist, lat, lon, str(time) if time else None, "exif")

@@ -20,6 +20,7 @@ import rasterio
 from rasterio.windows import Window
 
 from pipeline.job.layout import JobLayout
+from pipeline.ops.metrics import psnr as psnr_db
 from pipeline.scene.align import fit_similarity
 from pipeline.scene.records import Scene
 from pipeline.survey.measure import SurveyGeometry
@@ -39,8 +40,8 @@ def _read(path: Path, window: Window) -> np.ndarray:
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-    return float(10 * np.log10(1.0 / max(mse, 1e-12)))
+    """PSNR (dB, peak 1) of two colour arrays of the same cells."""
+    return psnr_db(float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)))
 
 
 def phase_shift(a: np.ndarray, b: np.ndarray) -> np.ndarray:

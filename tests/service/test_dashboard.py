@@ -27,7 +27,6 @@ from PIL import Image
 from svc_helpers import KEYS, METRICS, REPO, upload, wait_for
 
 from pipeline.job.layout import JobLayout
-from pipeline.job.table import STAGES
 
 playwright_api = pytest.importorskip("playwright.sync_api", reason="the browser test needs playwright")
 
@@ -355,8 +354,6 @@ def _check_scale_bar(page, survey: dict, preview_width: int, scale: float) -> No
 
 
 @pytest.mark.timeout(180)
-@pytest.mark.xfail("survey" not in STAGES, strict=True,
-                   reason="the survey stage (issue 42) is not in pipeline.job.table.STAGE_TABLE yet: no products")
 def test_survey_map_pans_zooms_and_switches_water(live, flow):
     """The survey tab shows the job's own orthomosaic preview (fetched with the key): a drag pans it by the drag,
     the wheel zooms in around the cursor, without water / with water / elevation swap the picture and keep the

@@ -8,14 +8,9 @@ import hashlib
 import io
 import zipfile
 
-import pytest
-
 from pipeline.job.layout import JobLayout
 from pipeline.job.markers import atomic_write_json
-from pipeline.job.table import STAGES
 from service.jobs.artifacts import find_artifact, list_artifacts, zip_stream
-
-SURVEY_STAGE_MERGED = "survey" in STAGES
 
 
 def _products(layout: JobLayout) -> dict[str, bytes]:
@@ -46,8 +41,6 @@ def test_survey_products_are_listed_once_export_is_done(tmp_path):
         assert {n: z.read(n) for n in z.namelist()} == products
 
 
-@pytest.mark.xfail(not SURVEY_STAGE_MERGED, strict=True,
-                   reason="the survey stage (issue 42) is not in pipeline.job.table.STAGE_TABLE yet")
 def test_survey_json_is_listed_once_the_survey_stage_is_done(tmp_path):
     layout = JobLayout(tmp_path / "job")
     atomic_write_json(layout.survey_result, {"grid": {"gsd": 0.002}})

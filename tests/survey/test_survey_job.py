@@ -20,12 +20,11 @@ from pipeline.survey.geotiff import validate_cog
 from pipeline.survey.marks import bar_length_units
 from pipeline.survey.surface import render_depths
 from pipeline.synth.ground_truth import load_ground_truth
-from pipeline.synth.photo import PhotoSynthConfig, default_textures_dir, generate_photo_scene
+from pipeline.synth.photo import PhotoSynthConfig, generate_photo_scene
 from pipeline.train.checkpoint import load_checkpoint
 from pipeline.train.model import model_from_state, training_views
 
-pytestmark = [pytest.mark.slow, pytest.mark.skipif(not default_textures_dir().is_dir(),
-                                                   reason="shared/data/textures is not beside the repository")]
+pytestmark = pytest.mark.slow
 
 GPS = (-9.5988, 143.7811)  # AIMS Erub's line: UTM zone 54S
 

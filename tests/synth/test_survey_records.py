@@ -19,12 +19,9 @@ from pipeline.scene.colmap import read_colmap
 from pipeline.scene.images import read_pixels, write_image
 from pipeline.synth.exif_records import ExifRecord, read_records, write_exif
 from pipeline.synth.geo import WorldGeo, utm_epsg
-from pipeline.synth.photo import PhotoSynthConfig, default_textures_dir, generate_photo_scene, photo_views
+from pipeline.synth.photo import PhotoSynthConfig, generate_photo_scene, photo_views
 from pipeline.synth.procedural import to_u8
 from pipeline.synth.survey_records import COLUMNS, RECORDS_FILE, read_records_csv
-
-needs_photos = pytest.mark.skipif(not default_textures_dir().is_dir(),
-                                  reason="shared/data/textures/euvp-gtr-a is not beside the repository")
 
 ORIGIN = (-9.5988, 143.7811)  # AIMS Erub, Torres Strait (UTM zone 54 S)
 SURVEY = PhotoSynthConfig(views=6, width=160, height=120, seed=3, grid_size=512, n_points=200, supersample=1,
@@ -46,7 +43,6 @@ def _centres(root: Path) -> dict[str, np.ndarray]:
     return {v.name: v.center for v in read_colmap(root / "sparse_gt", root / "images").views}
 
 
-@needs_photos
 def test_subject_distance_is_the_true_axis_range_within_the_altimeter_noise(survey):
     rows = _rows(survey)
     assert list(rows[0]) == list(COLUMNS) and [r["file"] for r in rows] == [f"frame_{i:04d}.png" for i in range(6)]
@@ -64,7 +60,6 @@ def test_subject_distance_is_the_true_axis_range_within_the_altimeter_noise(surv
     assert dev.max() < 5 * SURVEY.altimeter_noise and dev.max() > 1e-3  # noisy, but within 5 sigma
 
 
-@needs_photos
 def test_without_noise_subject_distance_equals_the_truth_and_no_gps_means_no_gps_tags(tmp_path):
     root = generate_photo_scene(EXACT, tmp_path / "exact")
     for rec in read_records_csv(root):
@@ -77,7 +72,6 @@ def test_without_noise_subject_distance_equals_the_truth_and_no_gps_means_no_gps
     assert json.loads((root / "water.json").read_text())["survey_records"]["gps"] is None
 
 
-@needs_photos
 def test_gps_converts_back_to_the_true_camera_centres(survey):
     geo = WorldGeo(SURVEY.gps_origin)
     assert geo.crs == "EPSG:32754"  # 143.78° E, south of the equator
@@ -107,7 +101,6 @@ def test_world_x_is_east_and_y_north_in_ground_metres():
         WorldGeo((85.0, 0.0))
 
 
-@needs_photos
 def test_capture_times_step_by_the_interval_and_other_readers_agree(survey):
     from service.surveys.exif import read_exif_time
 
@@ -120,7 +113,6 @@ def test_capture_times_step_by_the_interval_and_other_readers_agree(survey):
         assert r["datetime"] == t.strftime("%Y:%m:%d %H:%M:%S") + f".{t.microsecond // 1000:03d}"
 
 
-@needs_photos
 def test_written_pixels_are_the_rendered_ones(survey):
     """The EXIF changes no pixel: images/ decode to exactly the 8-bit rendering (OpenImageIO and Pillow)."""
     _, views = photo_views(SURVEY)
@@ -157,8 +149,6 @@ def test_write_exif_keeps_the_file_apart_from_its_exif_and_replaces_old_records(
 def test_real_aims_frame_reads_as_its_frames_csv():
     """The reader against a real ReefScan frame (the layout this module copies) and its survey's own list."""
     folder = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "aims-erub-mt81"
-    if not folder.is_dir():
-        pytest.skip("shared/data/real/aims-erub-mt81 is not beside the repository")
     with (folder / "frames.csv").open(newline="") as f:
         row = next(csv.DictReader(f))
     rec = read_records(folder / "images" / row["file"])
@@ -168,7 +158,6 @@ def test_real_aims_frame_reads_as_its_frames_csv():
     assert rec["time"].strftime("%Y:%m:%d %H:%M:%S") == row["datetime"]
 
 
-@needs_photos
 def test_cli_gps_and_altimeter_flags_survive_the_camera_effects(tmp_path, capsys):
     from cli.main import main
 
@@ -190,7 +179,5 @@ def test_cli_gps_and_altimeter_flags_survive_the_camera_effects(tmp_path, capsys
 def test_records_csv_columns_match_the_real_survey_list():
     """records.csv names its columns as AIMS's frames.csv does (plus the truth)."""
     folder = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "aims-erub-mt81"
-    if not folder.is_dir():
-        pytest.skip("shared/data/real/aims-erub-mt81 is not beside the repository")
     real = (folder / "frames.csv").read_text().splitlines()[0].split(",")
     assert set(COLUMNS) - set(real) == {"true_camera_to_bottom_m"}

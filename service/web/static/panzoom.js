@@ -124,13 +124,10 @@ export function panZoom(viewport, target, { onChange = () => {} } = {}) {
     keys[ev.key]();
   }
 
-  viewport.addEventListener("wheel", onWheel, { passive: false });
-  viewport.addEventListener("pointerdown", onDown);
-  viewport.addEventListener("pointermove", onMove);
-  viewport.addEventListener("pointerup", onUp);
-  viewport.addEventListener("pointercancel", onUp);
-  viewport.addEventListener("dblclick", onDoubleClick);
-  viewport.addEventListener("keydown", onKey);
+  // every listener the view adds, removed together by dispose()
+  const listeners = [["wheel", onWheel, { passive: false }], ["pointerdown", onDown], ["pointermove", onMove],
+    ["pointerup", onUp], ["pointercancel", onUp], ["dblclick", onDoubleClick], ["keydown", onKey]];
+  for (const [type, fn, opts] of listeners) viewport.addEventListener(type, fn, opts);
 
   return {
     // the target's box (CSS pixels at scale 1), then the whole of it fitted into the viewport
@@ -150,13 +147,7 @@ export function panZoom(viewport, target, { onChange = () => {} } = {}) {
     local,
     dispose() {
       resized.disconnect();
-      viewport.removeEventListener("wheel", onWheel);
-      viewport.removeEventListener("pointerdown", onDown);
-      viewport.removeEventListener("pointermove", onMove);
-      viewport.removeEventListener("pointerup", onUp);
-      viewport.removeEventListener("pointercancel", onUp);
-      viewport.removeEventListener("dblclick", onDoubleClick);
-      viewport.removeEventListener("keydown", onKey);
+      for (const [type, fn] of listeners) viewport.removeEventListener(type, fn);
     },
   };
 }
