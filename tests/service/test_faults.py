@@ -14,7 +14,7 @@ import uuid
 
 import pytest
 import redis
-from svc_helpers import REDIS_URL, job_log, job_status, upload, wait_for, wait_job
+from svc_helpers import METRICS, REDIS_URL, job_log, job_status, upload, wait_for, wait_job
 
 from service.core.coord import Coordinator, lock_token, parse_token
 from service.core.inflight import scan
@@ -58,6 +58,8 @@ def test_redis_outage_mid_training_the_job_finishes_once(private_live, scene_zip
                     lambda: (s if "coordinator (Redis) is unreachable" in (s := job_status(c, jid))["message"]
                              else None), timeout=NOTICE_S + 2, interval=0.25)
     noticed = time.monotonic() - stopped
+    kind = "appendonly" if stack.redis.appendonly else "no persistence"
+    METRICS[f"Redis outage ({kind}): unreachable shown after (s)"] = f"{noticed:.1f}"
     assert noticed <= NOTICE_S, noticed
     assert down["state"] == "running" and down["worker_lost"] is False, down
     time.sleep(max(0.0, OUTAGE_S - (time.monotonic() - stopped)))
@@ -66,6 +68,7 @@ def test_redis_outage_mid_training_the_job_finishes_once(private_live, scene_zip
     wait_for("the status to drop the outage message",
              lambda: (s if "unreachable" not in (s := job_status(c, jid))["message"] or s["state"] != "running"
                       else None), timeout=NOTICE_S + 2, interval=0.25)
+    METRICS[f"Redis outage ({kind}): back to progress after (s)"] = f"{time.monotonic() - back:.1f}"
     assert time.monotonic() - back <= NOTICE_S
     final = wait_job(c, jid, {"done", "failed", "cancelled"}, timeout=240)
     assert final["state"] == "done", final
