@@ -301,7 +301,10 @@ class ProgressReporter:
             try:
                 with self.rt.coord.manifest_mutex(self.job_id):
                     self._write(stage, message)
-            except (RedisError, TimeoutError) as e:
+            except TimeoutError as e:  # Redis answers but someone holds the mutex: skip this write
+                log.warning("job %s: progress not written: %s", self.job_id, e)
+                return
+            except RedisError as e:
                 # Redis away: nobody can take the mutex (the API's writes need it too), so this runner writes its
                 # progress without it and says why; the stage goes on and its end waits for Redis
                 if not self.unreachable:
