@@ -138,8 +138,9 @@ class RunLock:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
-        log.info("job lock %s: %d renewals every %.1f s, worst delay %.2f s, re-taken %d times",
-                 self._lock.name, self.renewals, self._ttl_s / 3, self.worst_gap_s, self.retaken)
+        log.log(logging.INFO if self.renewals or self.retaken else logging.DEBUG,
+                "job lock %s: %d renewals every %.1f s, worst delay %.2f s, re-taken %d times",
+                self._lock.name, self.renewals, self._ttl_s / 3, self.worst_gap_s, self.retaken)
         try:
             self._lock.release()
         except LockError:
