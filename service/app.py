@@ -2,7 +2,7 @@
 
 Nothing happens at import: settings are read and the objects built (``service.compose``, with the Celery app
 that sends the tasks: the caller's, else a producer for the settings' broker) when the app is created; folders
-are made and half-finished uploads swept when it starts.
+are made, half-finished uploads swept and the watchdog (``service.jobs.watchdog``) started when it starts.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from .compose import compose
 from .core.broker import producer
 from .core.dispatch import TaskSender
 from .core.settings import Settings, load_settings
+from .jobs.watchdog import Watchdog, start_watchdog
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,11 @@ def create_app(settings: Settings | None = None, celery_app: TaskSender | None =
             log.info("removed %d abandoned upload folder(s)", swept)
         services.intake.open()
         app.state.services = services
+        # unfinished jobs nobody runs are re-queued from here (service/jobs/watchdog.py says why not from beat)
+        stop_watchdog = start_watchdog(Watchdog(services.jobs, services.coord, settings.watchdog_grace_s),
+                                       settings.watchdog_every_s)
         yield
+        stop_watchdog.set()
         services.coord.close()
 
     app = FastAPI(title="dualphys", version="1", description=DESCRIPTION, lifespan=lifespan)

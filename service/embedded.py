@@ -5,6 +5,12 @@ not share a process with torch); the API runs in this process under uvicorn. Ctr
 ``docker stop``, systemd and process managers send) stops all three: the children get SIGTERM (Celery's warm
 shutdown) and, after ``STOP_GRACE_S``, SIGKILL.
 
+The children are supervised (:class:`Supervisor`): one that exits is reaped, its process group killed (a Celery
+worker's pool children would otherwise go on running a stage nobody owns) and started again after a backoff
+(1 s, doubling to 30 s); after ``MAX_RESTARTS`` restarts of one child within ``RESTART_WINDOW_S`` serve stops
+and exits non-zero saying which child kept dying. ``/ready`` is 503 while a queue has no live worker
+(``require_workers``), so a dead worker is never behind a healthy API.
+
 Settings compose as in a deployment: every ``DUALPHYS_*`` variable applies (docs/SERVICE.md), and an argument
 given here (a ``dualphys serve`` flag) wins over its variable. Without a data folder, Redis URL or API keys
 from either, the defaults are ``./dualphys-data``, ``redis://127.0.0.1:6379/0`` and one key for owner ``local``
@@ -20,8 +26,10 @@ import secrets
 import signal
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import redis
@@ -36,6 +44,10 @@ KEY_FILE = "api-key"
 DEFAULT_DATA_DIR = "dualphys-data"
 DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/0"
 STOP_GRACE_S = 20.0
+MAX_RESTARTS = 5
+RESTART_WINDOW_S = 600.0
+BACKOFF_S, BACKOFF_MAX_S = 1.0, 30.0
+POLL_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -105,27 +117,109 @@ def serve(host: str = "127.0.0.1", port: int = 8000, data_dir: str | os.PathLike
 
     env = {**os.environ, "DUALPHYS_API_KEYS": json.dumps(api_keys), "DUALPHYS_DATA_DIR": str(data),
            "DUALPHYS_REDIS_URL": redis_url, "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
-    settings = load_settings(api_keys=api_keys, data_dir=data, redis_url=redis_url)
+    env["DUALPHYS_REQUIRE_WORKERS"] = "true"  # /ready is 503 while a queue has no live worker
+    settings = load_settings(api_keys=api_keys, data_dir=data, redis_url=redis_url, require_workers=True)
     celery = [sys.executable, "-m", "celery", "-A", "worker.app"]
     queues = "cpu,surveys" + (",gpu" if settings.train_queue == "gpu" else "")
-    commands = [celery + ["worker", "--pool=prefork", f"--concurrency={worker_concurrency}", "-Q", queues,
-                          f"--loglevel={log_level.upper()}", "--without-gossip", "--without-mingle"]]
+    commands = [("worker", celery + ["worker", "--pool=prefork", f"--concurrency={worker_concurrency}", "-Q", queues,
+                          f"--loglevel={log_level.upper()}", "--without-gossip", "--without-mingle"])]
     if beat:
-        commands.append(celery + ["beat", "--schedule", str(data / "beat-schedule"), f"--loglevel={log_level.upper()}"])
-    children: list[subprocess.Popen] = []
+        commands.append(("beat", celery + ["beat", "--schedule", str(data / "beat-schedule"),
+                                           f"--loglevel={log_level.upper()}"]))
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host=host, port=port, log_level=log_level))
+    supervisor = Supervisor([Child(name, cmd) for name, cmd in commands], env, on_give_up=server)
     # uvicorn handles SIGTERM itself, then re-raises it with the handler it found: make that handler unwind
     # this function (as Ctrl-C does), so the worker and beat are stopped instead of orphaned.
     previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
-        for cmd in commands:
-            children.append(subprocess.Popen(cmd, env=env, start_new_session=True))
+        supervisor.start()
         log.info("worker%s started; API on http://%s:%d (docs at /docs)", " and beat" if beat else "", host, port)
-        uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level)
+        try:
+            server.run()
+        except KeyboardInterrupt:  # Ctrl-C: stop the children below, as SIGTERM does
+            pass
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the clean-up short
+        supervisor.stop()
         log.info("stopping the worker%s", " and beat" if beat else "")
-        stop_children(children)
+        stop_children([c.popen for c in supervisor.children if c.popen is not None])
         signal.signal(signal.SIGTERM, previous)
+    if supervisor.gave_up:
+        raise RuntimeError(supervisor.gave_up)
+    if not server.started:
+        raise RuntimeError(f"the API did not start on {host}:{port} (see the log above)")
+
+
+@dataclass
+class Child:
+    name: str
+    cmd: list[str]
+    popen: subprocess.Popen | None = None
+    restarts: list[float] = field(default_factory=list)  # monotonic times of the restarts
+
+
+class Supervisor:
+    """Starts the children, and restarts one that exits (its process group killed first) after a doubling
+    backoff; gives up after ``max_restarts`` restarts of one child within ``window_s``: ``gave_up`` says why and
+    ``on_give_up.should_exit`` (the uvicorn server) is set, so serve stops and exits non-zero."""
+
+    def __init__(self, children: list[Child], env: Mapping[str, str], on_give_up=None,
+                 max_restarts: int = MAX_RESTARTS, window_s: float = RESTART_WINDOW_S):
+        self.children, self.env, self.on_give_up = children, dict(env), on_give_up
+        self.max_restarts, self.window_s = max_restarts, window_s
+        self.gave_up: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="serve-supervisor", daemon=True)
+
+    def start(self) -> None:
+        for c in self.children:
+            self._spawn(c)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=10)
+
+    def _spawn(self, c: Child) -> None:
+        c.popen = subprocess.Popen(c.cmd, env=self.env, start_new_session=True)
+        log.info("started %s (pid %d)", c.name, c.popen.pid)
+
+    def _watch(self) -> None:
+        while not self._stop.wait(POLL_S):
+            for c in self.children:
+                if c.popen is None or c.popen.poll() is None:
+                    continue
+                if not self._restart(c):
+                    return
+
+    def _restart(self, c: Child) -> bool:
+        code = c.popen.returncode
+        _kill_group(c.popen.pid)  # the dead worker's pool children must not go on running its stage
+        now = time.monotonic()
+        c.restarts = [t for t in c.restarts if now - t < self.window_s]
+        if len(c.restarts) >= self.max_restarts:
+            self.gave_up = (f"the {c.name} exited (code {code}) {len(c.restarts) + 1} times within "
+                            f"{self.window_s:.0f} s; stopping")
+            log.error("%s", self.gave_up)
+            if self.on_give_up is not None:
+                self.on_give_up.should_exit = True
+            return False
+        delay = min(BACKOFF_MAX_S, BACKOFF_S * 2 ** len(c.restarts))
+        log.error("the %s exited (code %s); restarting it in %.0f s (restart %d of at most %d within %.0f s)",
+                  c.name, code, delay, len(c.restarts) + 1, self.max_restarts, self.window_s)
+        if self._stop.wait(delay):
+            return False
+        c.restarts.append(time.monotonic())
+        self._spawn(c)
+        return True
+
+
+def _kill_group(pgid: int) -> None:
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
 
 
 def _exit_on_sigterm(signum: int, frame) -> None:

@@ -19,15 +19,19 @@ import json
 import logging
 import re
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TypeVar
+
+from redis.exceptions import RedisError
 
 from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobCancelled, JobOptions, StageContext
 from pipeline.job.runner import run_stage
 from service.compose import Components
 from service.core.coord import Coordinator, RunLock
+from service.core.dispatch import DispatchError
 from service.jobs.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, WebhookDelivery, overall_progress
 from service.jobs.ops import pipeline_stages
 from service.jobs.redact import redact_paths
@@ -40,6 +44,10 @@ MANIFEST_PROGRESS_EVERY_S = 2.0
 LOG_PROGRESS_EVERY_S = 5.0
 CACHE_PROGRESS_EVERY_S = 0.25
 CANCEL_CHECK_EVERY_S = 0.5
+OUTAGE_BACKOFF_MAX_S = 5.0
+UNREACHABLE_MESSAGE = "the coordinator (Redis) is unreachable"
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -62,14 +70,21 @@ def error_code(exc: BaseException) -> str:
     return "stage_failed"
 
 
-def execute_stage(rt: Components, job_id: str, stage: str, run_id: str) -> Outcome:
+def execute_stage(rt: Components, job_id: str, stage: str, run_id: str, hostname: str = "") -> Outcome:
+    """``hostname``: the Celery worker's (the run lock names it, with this pid, as its holder)."""
     try:
         m = rt.store.read(job_id)
     except JobNotFound:
         return Outcome("stale", detail="job deleted")
     if m.run_id != run_id or m.state in TERMINAL_STATES:
         return Outcome("stale", detail=f"run {run_id} is not the job's live run")
-    lock = rt.coord.try_run_lock(job_id, rt.settings.lock_ttl_s)
+    lock = rt.coord.try_run_lock(job_id, rt.settings.lock_ttl_s, hostname)
+    if lock is None:
+        state, value = rt.coord.holder_state(job_id)
+        if state == "dead":  # its worker's heartbeat says the holder is gone: take over now, not at lock expiry
+            lock = rt.coord.try_run_lock(job_id, rt.settings.lock_ttl_s, hostname, steal_from=value)
+            if lock is not None:
+                log.warning("job %s: took the run lock over from dead runner %s", job_id, value)
     if lock is None:
         return Outcome("busy", retry_after=rt.settings.lock_retry_s, detail="another runner holds the job")
     try:
@@ -123,7 +138,7 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
         return ended
     if rec.status == "done":
         if pending_next:
-            rt.jobs.dispatch(job_id, run_id, nxt)
+            dispatch_next(rt, job_id, run_id, nxt)
         return Outcome("already_done")
 
     log.info("job %s: stage %s started (attempt %d, run %s)", job_id, stage, attempt, run_id)
@@ -138,7 +153,9 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
         if lock.lost.is_set():
             return Outcome("lost", detail="job lock lost; another runner owns the job")
         log.info("job %s: %s", job_id, e)
-        return _record_end(rt, job_id, run_id, stage, "cancelled", None, str(e), time.time() - t0)
+        seconds, why = time.time() - t0, str(e)
+        return when_redis_answers(rt, f"record the cancel of job {job_id}", lambda: _record_end(
+            rt, job_id, run_id, stage, "cancelled", None, why, seconds))
     except Exception as e:  # the stage failed: record why; the task itself succeeds (no broker retry)
         if lock.lost.is_set():
             return Outcome("lost", detail="job lock lost; another runner owns the job")
@@ -146,14 +163,45 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
         err = JobError(stage=stage, code=error_code(e), message=redact_paths(f"{e}" or type(e).__name__,
                                                                              rt.store.job_dir(job_id),
                                                                              rt.settings.data_dir))
-        return _record_end(rt, job_id, run_id, stage, "failed", err, err.message, time.time() - t0)
+        seconds = time.time() - t0
+        return when_redis_answers(rt, f"record the failure of {stage} of job {job_id}", lambda: _record_end(
+            rt, job_id, run_id, stage, "failed", err, err.message, seconds))
     log.info("job %s: stage %s %s in %.1f s", job_id, stage, "skipped (marker matches)" if skipped else "done",
              time.time() - t0)
-    out = _record_end(rt, job_id, run_id, stage, "done", None, "", time.time() - t0, skipped=skipped,
-                      progress=reporter.value)
+    seconds = time.time() - t0
+    out = when_redis_answers(rt, f"record the end of {stage} of job {job_id}", lambda: _record_end(
+        rt, job_id, run_id, stage, "done", None, "", seconds, skipped=skipped, progress=reporter.value))
     if out.status == "ran" and out.next_stage is not None:
-        rt.jobs.dispatch(job_id, run_id, out.next_stage)
+        dispatch_next(rt, job_id, run_id, out.next_stage)
     return out
+
+
+def when_redis_answers(rt: Components, what: str, fn: Callable[[], T]) -> T:
+    """``fn()``, tried again with backoff while Redis (the mutex, the cache, the broker) does not answer, up to
+    ``redis_outage_wait_s``; after that the error propagates and the watchdog (service.jobs.watchdog) finds the job
+    nobody runs once Redis is back. ``fn`` must be safe to repeat when it failed before writing anything."""
+    deadline = time.monotonic() + rt.settings.redis_outage_wait_s
+    delay = 0.5
+    while True:
+        try:
+            return fn()
+        except (RedisError, DispatchError, TimeoutError) as e:
+            if time.monotonic() + delay > deadline:
+                log.error("gave up trying to %s: %s", what, e)
+                raise
+            log.warning("cannot %s yet (Redis unreachable: %s); trying again in %.1f s", what, e, delay)
+            time.sleep(delay)
+            delay = min(2 * delay, OUTAGE_BACKOFF_MAX_S)
+
+
+def dispatch_next(rt: Components, job_id: str, run_id: str, stage: str) -> None:
+    """Queue the next stage, waiting out a Redis outage; a broker still away after that leaves the job to the
+    watchdog (the manifest says the stage before is done and this one not dispatched), never failing it."""
+    try:
+        when_redis_answers(rt, f"queue {stage} of job {job_id}",
+                           lambda: rt.jobs.dispatch(job_id, run_id, stage, fail_job=False))
+    except (RedisError, DispatchError, TimeoutError) as e:
+        log.error("job %s: %s not queued (%s); the watchdog re-queues it once Redis is back", job_id, stage, e)
 
 
 def _finish(m: Manifest, state: str, error: JobError | None, message: str) -> WebhookDelivery | None:
@@ -230,6 +278,7 @@ class ProgressReporter:
                  floor: float):
         self.rt, self.job_id, self.run_id, self.stages, self.done = rt, job_id, run_id, stages, done
         self.value = floor
+        self.unreachable = False
         self._cache_at = self._manifest_at = self._log_at = 0.0
 
     def __call__(self, stage: str, fraction: float, message: str) -> None:
@@ -242,17 +291,37 @@ class ProgressReporter:
                 self.value = max(self.value, self.rt.coord.push_progress(self.job_id, self.run_id, stage,
                                                                          self.value, message))
             except Exception as e:
-                log.warning("progress cache unavailable: %s", e)
+                if not self.unreachable:
+                    log.warning("progress cache unavailable: %s", e)
         if now - self._log_at >= LOG_PROGRESS_EVERY_S:
             self._log_at = now
             log.info("job %s: %s %.1f%% %s", self.job_id, stage, self.value, message)
         if now - self._manifest_at >= MANIFEST_PROGRESS_EVERY_S:
             self._manifest_at = now
-            with self.rt.coord.manifest_mutex(self.job_id):
-                m = self.rt.store.read(self.job_id)
-                if m.run_id == self.run_id and m.state == "running":
-                    m.progress, m.message, m.current_stage = max(m.progress, self.value), message, stage
-                    self.rt.store.write(m)
+            try:
+                with self.rt.coord.manifest_mutex(self.job_id):
+                    self._write(stage, message)
+            except TimeoutError as e:  # Redis answers but someone holds the mutex: skip this write
+                log.warning("job %s: progress not written: %s", self.job_id, e)
+                return
+            except RedisError as e:
+                # Redis away: nobody can take the mutex (the API's writes need it too), so this runner writes its
+                # progress without it and says why; the stage goes on and its end waits for Redis
+                if not self.unreachable:
+                    log.warning("job %s: the coordinator (Redis) is unreachable (%s); %s goes on", self.job_id,
+                                e, stage)
+                self.unreachable = True
+                self._write(stage, f"{UNREACHABLE_MESSAGE}; {stage} goes on ({message})")
+                return
+            if self.unreachable:
+                log.info("job %s: the coordinator (Redis) answers again", self.job_id)
+            self.unreachable = False
+
+    def _write(self, stage: str, message: str) -> None:
+        m = self.rt.store.read(self.job_id)
+        if m.run_id == self.run_id and m.state == "running":
+            m.progress, m.message, m.current_stage = max(m.progress, self.value), message, stage
+            self.rt.store.write(m)
 
 
 def _last_words(rt, m, stage: str) -> str:
@@ -287,7 +356,8 @@ class CancelCheck:
             try:
                 self._cancelled = self.coord.cancel_requested(self.job_id)
             except Exception as e:
-                log.warning("cannot read the cancel flag: %s", e)
+                if not self.lock.unreachable.is_set():
+                    log.warning("cannot read the cancel flag: %s", e)
         return self._cancelled
 
 

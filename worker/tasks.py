@@ -35,7 +35,7 @@ def run_stage(self, job_id: str, stage: str, run_id: str) -> str:
     prepare_stage_process()
     rt = compose(load_settings(), self.app)
     try:
-        out = execute_stage(rt, job_id, stage, run_id)
+        out = execute_stage(rt, job_id, stage, run_id, hostname=self.request.hostname or "")
     finally:
         rt.close()
     log.info("job %s stage %s: %s %s", job_id, stage, out.status, out.detail)

@@ -12,8 +12,10 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import threading
 import time
+import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -23,6 +25,8 @@ from redis.exceptions import LockError
 log = logging.getLogger(__name__)
 
 PROGRESS_TTL_S = 7 * 24 * 3600
+WORKER_BEAT_EVERY_S = 2.0  # worker.heartbeat's period: a dead pool child is known within this
+WORKER_TTL_S = 3 * WORKER_BEAT_EVERY_S  # a dead worker's heartbeat is gone within this
 IDEMPOTENCY_TTL_S = 24 * 3600
 
 # Progress never goes down: keep the larger of the stored and the new value (a resumed stage restarts its
@@ -43,17 +47,53 @@ return 0
 """
 
 
+_SWAP_IF_EQUAL = """
+if redis.call('GET', KEYS[1]) == ARGV[1] then
+  redis.call('SET', KEYS[1], ARGV[2], 'PX', tonumber(ARGV[3]))
+  return 1
+end
+return 0
+"""
+
+UNREACHABLE_RETRY_S = 1.0  # a lock renewal that found Redis away tries again this often (a re-take soon after)
+LOCK_SEP = "|"
+ANONYMOUS = "?"  # the holder name of a lock taken outside a Celery worker
+
+
+def lock_token(hostname: str, pid: int) -> str:
+    """A run lock's value names its holder: ``<worker hostname>|<pid>|<taken at>|<random>`` (worker.heartbeat
+    lists each worker's live pids, so an observer can tell a dead holder from a live one)."""
+    return LOCK_SEP.join((hostname.replace(LOCK_SEP, "_"), str(pid), f"{time.time():.3f}", uuid.uuid4().hex[:12]))
+
+
+def parse_token(token: str) -> tuple[str, int, float] | None:
+    """(hostname, pid, taken_at) of a lock value :func:`lock_token` wrote; None for any other value."""
+    parts = token.split(LOCK_SEP)
+    try:
+        return (parts[0], int(parts[1]), float(parts[2])) if len(parts) == 4 else None
+    except ValueError:
+        return None
+
+
 class RunLock:
     """The one-runner-per-job lock, renewed by a daemon thread every ttl/3 while held.
 
-    ``lost`` is set when a renewal finds the lock gone (it expired and another runner may own the job): the
-    stage must then stop without recording anything.
+    ``lost`` is set when a renewal finds the lock taken by someone else (it expired and another runner owns the
+    job): the stage must then stop without recording anything. A lock that vanished with the Redis that held it
+    (a restart without persistence, or expired during an outage longer than the TTL) is re-taken when nobody
+    else holds it. ``unreachable`` is set while renewals cannot reach Redis. ``worst_gap_s`` is the longest a
+    renewal came late (the thread waited for the GIL; numba kernels and pycolmap hold it), logged at release.
     """
 
-    def __init__(self, lock: redis.lock.Lock, ttl_s: float):
+    def __init__(self, lock: redis.lock.Lock, ttl_s: float, token: str):
         self._lock = lock
         self._ttl_s = ttl_s
+        self.token = token
         self.lost = threading.Event()
+        self.unreachable = threading.Event()
+        self.retaken = 0
+        self.renewals = 0
+        self.worst_gap_s = 0.0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -62,20 +102,45 @@ class RunLock:
         self._thread.start()
 
     def _beat(self) -> None:
-        while not self._stop.wait(self._ttl_s / 3):
+        every = self._ttl_s / 3
+        wait = every
+        while True:
+            t0 = time.monotonic()
+            if self._stop.wait(wait):
+                return
+            self.worst_gap_s = max(self.worst_gap_s, time.monotonic() - t0 - wait)
             try:
-                self._lock.reacquire()
+                self._renew()
             except LockError:
-                log.error("job lock %s was lost; stopping this runner", self._lock.name)
+                log.error("job lock %s is held by another runner; stopping this one", self._lock.name)
                 self.lost.set()
                 return
-            except redis.RedisError as e:  # Redis briefly away: keep trying until the TTL runs out
-                log.warning("could not renew job lock %s: %s", self._lock.name, e)
+            except redis.RedisError as e:  # Redis away: keep trying; the stage goes on (its end waits for Redis)
+                if not self.unreachable.is_set():
+                    log.warning("could not renew job lock %s: %s", self._lock.name, e)
+                self.unreachable.set()
+                wait = min(every, UNREACHABLE_RETRY_S)
+                continue
+            self.unreachable.clear()
+            self.renewals += 1
+            wait = every
+
+    def _renew(self) -> None:
+        try:
+            self._lock.reacquire()
+        except LockError:
+            if not self._lock.do_acquire(self.token):  # SET NX: only if nobody holds it
+                raise
+            self.retaken += 1
+            log.warning("job lock %s had vanished (Redis lost it); re-taken", self._lock.name)
 
     def release(self) -> None:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
+        log.log(logging.INFO if self.renewals or self.retaken else logging.DEBUG,
+                "job lock %s: %d renewals every %.1f s, worst delay %.2f s, re-taken %d times",
+                self._lock.name, self.renewals, self._ttl_s / 3, self.worst_gap_s, self.retaken)
         try:
             self._lock.release()
         except LockError:
@@ -90,6 +155,7 @@ class Coordinator:
         self.prefix = prefix
         self._progress = client.register_script(_PROGRESS_MAX)
         self._delete_if_equal = client.register_script(_DELETE_IF_EQUAL)
+        self._swap_if_equal = client.register_script(_SWAP_IF_EQUAL)
 
     @classmethod
     def from_url(cls, url: str, prefix: str) -> Coordinator:
@@ -123,17 +189,52 @@ class Coordinator:
                 lock.release()
             except LockError:
                 log.warning("manifest mutex of %s expired while held", job_id)
+            except redis.RedisError as e:  # the write is done; the mutex expires by itself
+                log.warning("could not release the manifest mutex of %s: %s", job_id, e)
 
-    def try_run_lock(self, job_id: str, ttl_s: float) -> RunLock | None:
+    def try_run_lock(self, job_id: str, ttl_s: float, holder: str = "", steal_from: str | None = None
+                     ) -> RunLock | None:
+        """The job's run lock for ``holder`` (a worker hostname), or None when someone holds it. ``steal_from``:
+        take it over from that value (a holder :meth:`holder_state` found dead) if it still holds it."""
+        token = lock_token(holder or ANONYMOUS, os.getpid())
         lock = self.redis.lock(self.key("job", job_id, "run"), timeout=ttl_s, blocking=False, thread_local=False)
-        if not lock.acquire(blocking=False):
+        if steal_from is not None:
+            if not self._swap_if_equal(keys=[lock.name], args=[steal_from, token, int(ttl_s * 1000)]):
+                return None
+            lock.local.token = self.redis.get_encoder().encode(token)
+        elif not lock.acquire(blocking=False, token=token):
             return None
-        held = RunLock(lock, ttl_s)
+        held = RunLock(lock, ttl_s, token)
         held.start_heartbeat()
         return held
 
     def run_lock_held(self, job_id: str) -> bool:
         return bool(self.redis.exists(self.key("job", job_id, "run")))
+
+    def run_lock_value(self, job_id: str) -> str | None:
+        return self.redis.get(self.key("job", job_id, "run"))
+
+    def holder_state(self, job_id: str) -> tuple[str, str | None]:
+        """(state, lock value): ``none`` (no lock), ``alive``, ``dead`` (its worker's heartbeat, written after the
+        lock was taken, no longer lists the holder's pid, or the worker's heartbeat expired), ``unknown`` (a
+        value without a holder, or Redis restarted too recently for a missing heartbeat to mean anything)."""
+        value = self.run_lock_value(job_id)
+        if value is None:  # right after a Redis restart the runner may not have re-taken its lock yet
+            return ("unknown" if self.uptime_s() < WORKER_TTL_S + 1 else "none"), None
+        holder = parse_token(value)
+        if holder is None or holder[0] == ANONYMOUS:
+            return "unknown", value  # a holder that names no worker (not a Celery task): only its TTL tells
+        hostname, pid, taken_at = holder
+        beat = self.worker_beat(hostname)
+        if beat is None:
+            fresh = self.uptime_s() < WORKER_TTL_S + 1
+            return ("unknown" if fresh else "dead"), value
+        if pid in beat.get("pids", [pid]) or float(beat.get("at", 0)) <= taken_at:
+            return "alive", value  # listed, or the beat predates the lock (a child that just started)
+        return "dead", value
+
+    def uptime_s(self) -> float:
+        return float(self.redis.info("server").get("uptime_in_seconds", 0))
 
     @contextmanager
     def _try_lock(self, name: str, ttl_s: float) -> Iterator[bool]:
@@ -148,6 +249,10 @@ class Coordinator:
                     lock.release()
                 except LockError:
                     pass
+
+    def watchdog_lock(self, ttl_s: float):
+        """Yields False while another API process runs a watchdog pass (service.jobs.watchdog)."""
+        return self._try_lock(self.key("watchdog"), ttl_s)
 
     def scan_lock(self, survey_id: str, ttl_s: float = 600.0):
         """Yields False when another scanner holds this survey's lock (the caller skips the scan)."""
@@ -205,9 +310,19 @@ class Coordinator:
         self._delete_if_equal(keys=[self._idem_key(owner, key)], args=[f"pending:{job_id}"])
 
     # ---- workers (worker.heartbeat)
-    def announce_worker(self, hostname: str, queues: list[str], pid: int, ttl_s: float) -> None:
-        self.redis.set(self.key("worker", hostname), json.dumps({"queues": queues, "pid": pid, "at": time.time()}),
+    def announce_worker(self, hostname: str, queues: list[str], pid: int, ttl_s: float,
+                        pids: list[int] | None = None) -> None:
+        """``pids``: the processes that may run stages (the main process and its pool children)."""
+        self.redis.set(self.key("worker", hostname),
+                       json.dumps({"queues": queues, "pid": pid, "pids": pids or [pid], "at": time.time()}),
                        ex=max(1, int(ttl_s)))
+
+    def worker_beat(self, hostname: str) -> dict | None:
+        raw = self.redis.get(self.key("worker", hostname))
+        try:
+            return json.loads(raw) if raw else None
+        except ValueError:
+            return None
 
     def forget_worker(self, hostname: str) -> None:
         self.redis.delete(self.key("worker", hostname))

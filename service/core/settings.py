@@ -59,8 +59,20 @@ class Settings(BaseSettings):
     """How often a worker looks for tasks abandoned by a dead worker (after ``visibility_timeout_s``)."""
     lock_ttl_s: float = Field(60.0, gt=0)
     """Per-job lock lifetime; the runner renews it every third of this while a stage runs."""
-    lock_retry_s: float = Field(15.0, gt=0)
-    """A task whose job is locked by another runner comes back after this many seconds."""
+    lock_retry_s: float = Field(3.0, gt=0)
+    """A task whose job is locked by a live runner comes back after this many seconds (a dead holder, by its
+    worker's heartbeat, is taken over at once)."""
+    redis_outage_wait_s: float = Field(600.0, gt=0)
+    """A stage that ended while Redis was unreachable retries recording its end and queuing the next stage (with
+    backoff) this long; after that the watchdog finds the job once Redis is back."""
+    watchdog_every_s: float = Field(2.0, gt=0)
+    """The API's watchdog (service.jobs.watchdog) looks for unfinished jobs nobody runs this often."""
+    watchdog_grace_s: float = Field(12.0, gt=0)
+    """A job must look abandoned (no live runner, no queued message; unacknowledged ones count after this too)
+    for this long before the watchdog re-queues its stage: longer than a hand-over between stages, a worker's
+    takeover of a redelivered task (``lock_retry_s``) and a heartbeat's lifetime."""
+    require_workers: bool = False
+    """/ready is 503 while a queue jobs need has no live worker (``dualphys serve`` with workers sets it)."""
     max_stage_attempts: int = Field(3, ge=1)
     """A stage whose worker died this many times fails the job (code ``worker_lost``)."""
     max_tasks_per_child: int = Field(0, ge=0)

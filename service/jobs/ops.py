@@ -94,8 +94,9 @@ class JobOps:
         stages = pipeline_stages()
         return overall_progress(stages, {s for s in stages if m.stage(s).status == "done"}, None, 0.0)
 
-    def dispatch(self, job_id: str, run_id: str, stage: str | None) -> Manifest:
-        """Send ``stage`` of run ``run_id`` and record it; a broker failure fails the job (retry re-sends)."""
+    def dispatch(self, job_id: str, run_id: str, stage: str | None, fail_job: bool = True) -> Manifest:
+        """Send ``stage`` of run ``run_id`` and record it; a broker failure fails the job (retry re-sends) unless
+        ``fail_job`` is False (a worker handing over to the next stage: it waits for Redis, then the watchdog)."""
         if stage is None:
             return self.store.read(job_id)
         assert self.dispatcher is not None
@@ -103,6 +104,8 @@ class JobOps:
             self.dispatcher.send_stage(job_id, stage, run_id)
         except DispatchError as e:
             log.error("%s", e)
+            if not fail_job:
+                raise
             planned = None
             with self.coord.manifest_mutex(job_id):
                 m = self.store.read(job_id)
@@ -168,12 +171,13 @@ class JobOps:
         return StatusView(m, state, stage, round(progress, 2), message, lost)
 
     def _worker_lost(self, m: Manifest) -> bool:
-        """A stage recorded as running whose run lock is gone: the runner holds the lock from before it records
-        ``running`` until after it records the end, so its worker died (the lock expired, ``lock_ttl_s``)."""
+        """A stage recorded as running whose runner is gone: the runner holds the lock from before it records
+        ``running`` until after it records the end, and the lock names it; its worker's heartbeat (every 2 s)
+        says whether it still lives (``Coordinator.holder_state``), so a dead one shows within seconds."""
         if m.state != "running" or m.current_stage is None or m.stage(m.current_stage).status != "running":
             return False
         try:
-            return not self.coord.run_lock_held(m.id)
+            return self.coord.holder_state(m.id)[0] in ("none", "dead")
         except Exception as e:  # the cache is away: say nothing rather than something wrong
             log.warning("cannot read the run lock: %s", e)
             return False
@@ -184,8 +188,7 @@ class JobOps:
         ckpt = self.store.last_checkpoint_iteration(m.id) if stage == "train" else None
         resume = f"from checkpoint {ckpt}" if ckpt is not None else "from the start of the stage"
         was = f" at '{last}'" if last else ""
-        return (f"worker lost during {stage} (attempt {rec.attempts}){was}; retrying {resume} when the task is "
-                f"delivered again")
+        return f"worker lost during {stage} (attempt {rec.attempts}){was}; resuming {resume}"
 
     # ---- cancel / retry / delete
     def cancel(self, job_id: str, owner: str) -> Manifest:

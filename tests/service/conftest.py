@@ -33,6 +33,7 @@ from svc_helpers import (
     REDIS_URL,
     REPO,
     SCENE,
+    PrivateRedis,
     RecordingDispatcher,
     auth,
     delete_prefix,
@@ -173,6 +174,7 @@ class LiveStack:
     port: int
     procs: dict[str, Proc] = field(default_factory=dict)
     counter: int = 0
+    redis: PrivateRedis | None = None  # the stack's own Redis server (private_live), else the shared one
 
     @property
     def data_dir(self) -> Path:
@@ -247,14 +249,9 @@ class LiveStack:
             p.stop()
 
 
-@pytest.fixture(scope="session")
-def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
-    root = tmp_path_factory.mktemp("live")
-    prefix = f"dptest-{uuid.uuid4().hex[:8]}-live"
-    stack = LiveStack(root=root, prefix=prefix, env={}, port=free_port())
-    for d in (stack.data_dir, stack.survey_root, stack.api_tmp):
-        d.mkdir()
-    stack.env = {
+def live_env(stack: LiveStack, redis_url: str) -> dict[str, str]:
+    """The environment of a live stack's processes: its own prefix and data folder, short timings, ``redis_url``."""
+    return {
         **{k: v for k, v in os.environ.items() if not k.startswith("DUALPHYS_")},
         "OMP_WAIT_POLICY": "PASSIVE",
         "PYTHONUNBUFFERED": "1",
@@ -262,8 +259,8 @@ def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
         "PYTHONPATH": os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
         "DUALPHYS_API_KEYS": json.dumps({v: k for k, v in KEYS.items()}),
         "DUALPHYS_DATA_DIR": str(stack.data_dir),
-        "DUALPHYS_REDIS_URL": REDIS_URL,
-        "DUALPHYS_REDIS_PREFIX": prefix,
+        "DUALPHYS_REDIS_URL": redis_url,
+        "DUALPHYS_REDIS_PREFIX": stack.prefix,
         "DUALPHYS_MAX_UPLOAD_BYTES": str(MAX_UPLOAD),
         "DUALPHYS_ARCHIVE_MAX_ENTRIES": str(MAX_ENTRIES),
         "DUALPHYS_MIN_FREE_BYTES": "0",
@@ -271,8 +268,10 @@ def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
         "DUALPHYS_RESTORE_INTERVAL_S": "1",
         "DUALPHYS_LOCK_TTL_S": "5",
         "DUALPHYS_LOCK_RETRY_S": "1",
+        "DUALPHYS_WATCHDOG_EVERY_S": "1",
+        "DUALPHYS_WATCHDOG_GRACE_S": "4",
         "DUALPHYS_SURVEY_ROOTS": json.dumps([str(stack.survey_root)]),
-        "DUALPHYS_SURVEYS_FILE": str(root / "surveys.toml"),
+        "DUALPHYS_SURVEYS_FILE": str(stack.root / "surveys.toml"),
         "DUALPHYS_SURVEY_TICK_S": "1",
         "DUALPHYS_SURVEY_MIN_INTERVAL_S": "1",
         "DUALPHYS_SURVEY_SETTLE_S": "0",
@@ -284,12 +283,49 @@ def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
         "DUALPHYS_WEBHOOK_BACKOFF_S": "0.3",
         "DUALPHYS_WEBHOOK_TIMEOUT_S": "3",
     }
+
+
+def start_stack(stack: LiveStack, redis_url: str) -> LiveStack:
+    """Start ``stack`` (its folders, the API and a worker) against the Redis at ``redis_url``."""
+    for d in (stack.data_dir, stack.survey_root, stack.api_tmp):
+        d.mkdir()
+    stack.env = live_env(stack, redis_url)
+    stack.start_api()
+    stack.start_worker()
+    return stack
+
+
+@pytest.fixture(scope="session")
+def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
+    root = tmp_path_factory.mktemp("live")
+    prefix = f"dptest-{uuid.uuid4().hex[:8]}-live"
+    stack = LiveStack(root=root, prefix=prefix, env={}, port=free_port())
     try:
-        stack.start_api()
-        stack.start_worker()
-        yield stack
+        yield start_stack(stack, REDIS_URL)
     finally:
         stack.teardown()
         delete_prefix(redis_client, prefix)
 
 
+@pytest.fixture()
+def private_redis(tmp_path, request) -> Iterator[PrivateRedis]:
+    """A redis-server of this test's own on a free port (it may be stopped and restarted); ``request.param``:
+    True for append-only persistence, False for none."""
+    server = PrivateRedis(tmp_path / "redis", appendonly=bool(getattr(request, "param", False)))
+    server.start()
+    try:
+        yield server
+    finally:
+        server.kill()
+
+
+@pytest.fixture()
+def private_live(tmp_path, private_redis) -> Iterator[LiveStack]:
+    """A live stack of this test's own against ``private_redis``."""
+    root = tmp_path / "live"
+    root.mkdir()
+    stack = LiveStack(root=root, prefix="dptest-private", env={}, port=free_port(), redis=private_redis)
+    try:
+        yield start_stack(stack, private_redis.url)
+    finally:
+        stack.teardown()

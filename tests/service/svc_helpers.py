@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import io
 import logging
+import os
+import signal
 import socket
+import subprocess
 import time
 import zipfile
 from collections.abc import Callable
@@ -105,6 +108,53 @@ def make_settings(data_dir: Path, prefix: str, **over):
                 survey_roots=[data_dir / "surveys-root"], survey_min_interval_s=1, lock_ttl_s=5, lock_retry_s=1)
     return load_settings(**{**base, **over})
 
+
+
+class PrivateRedis:
+    """A redis-server of a test's own on a free 127.0.0.1 port (never the shared one), to stop and restart.
+    ``appendonly``: persistence in an append-only file (``appendfsync always``); else none at all, so a restart
+    loses every key, as a Redis without persistence does."""
+
+    def __init__(self, folder: Path, appendonly: bool):
+        self.folder, self.appendonly, self.port = folder, appendonly, free_port()
+        self.proc: subprocess.Popen | None = None
+        folder.mkdir(parents=True, exist_ok=True)
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def start(self) -> None:
+        args = ["redis-server", "--bind", "127.0.0.1", "--port", str(self.port), "--dir", str(self.folder),
+                "--save", "", "--appendonly", "yes" if self.appendonly else "no"]
+        if self.appendonly:
+            args += ["--appendfsync", "always"]
+        log_file = open(self.folder / "redis.log", "ab")
+        self.proc = subprocess.Popen(args, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     start_new_session=True)
+        log_file.close()
+        client = redis.Redis(port=self.port, socket_connect_timeout=1)
+
+        def up() -> bool:
+            assert self.proc.poll() is None, (self.folder / "redis.log").read_text()[-2000:]
+            try:
+                return bool(client.ping())
+            except redis.RedisError:
+                return False
+
+        wait_for("the private redis-server", up, timeout=20, interval=0.05)
+        client.close()
+
+    def stop(self) -> None:
+        """SIGTERM: a clean shutdown (the append-only file is complete; without persistence everything is lost)."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.proc.wait(timeout=20)
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(timeout=10)
 
 
 class RecordingDispatcher:

@@ -265,3 +265,30 @@ def test_the_deployments_upload_limits_reach_the_ingest_stage(tmp_path, unit_pre
     with TestClient(create_app(settings)) as client:
         assert_error(create(client, "alice", good_zip), 413 if code == "too_many_entries" else 422, code)
         assert not any(settings.jobs_dir.iterdir())
+
+
+def test_ready_requires_a_live_worker_on_every_needed_queue_when_asked(tmp_path, unit_prefix) -> None:
+    """``require_workers`` (on under `dualphys serve`): a queue jobs need without a live worker makes /ready 503
+    (issue 44: never a dead worker behind a healthy /ready); without the setting it stays 200 with a warning."""
+    from fastapi.testclient import TestClient
+    from svc_helpers import make_settings
+
+    from service.app import create_app
+
+    prefix = f"{unit_prefix}-ready-{tmp_path.name[-6:]}"
+    for require in (False, True):
+        settings = make_settings(tmp_path, prefix, require_workers=require)
+        with TestClient(create_app(settings)) as client:
+            r = client.get("/ready")
+            assert r.status_code == (503 if require else 200), r.text
+            assert r.json()["workers_ok"] is False and "no worker consumes the 'cpu' queue" in r.json()["warnings"]
+            if require:
+                assert_error(r, 503, "not_ready")
+                assert "no worker consumes the 'cpu' queue" in r.json()["error"]["message"]
+            coord = client.app.state.services.coord
+            coord.announce_worker("w1@test", ["cpu", "surveys"], 1, ttl_s=30)
+            try:
+                r = client.get("/ready")
+                assert r.status_code == 200 and r.json()["workers_ok"] is True, r.text
+            finally:
+                coord.forget_worker("w1@test")

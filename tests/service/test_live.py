@@ -8,6 +8,7 @@ import io
 import json
 import os
 import re
+import signal
 import stat
 import tarfile
 import threading
@@ -39,6 +40,21 @@ pytestmark = pytest.mark.slow
 ITERATIONS = 400  # checkpoints every 80: time to kill the worker between two of them, short enough for CI
 
 
+def pool_children(pid: int) -> list[int]:
+    """The live child processes of ``pid`` (a Celery worker's pool children), from /proc."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                text = Path(f"/proc/{entry}/stat").read_text()
+            except OSError:
+                continue
+            fields = text[text.rindex(")") + 2:].split()
+            if int(fields[1]) == pid and fields[0] != "Z":
+                out.append(int(entry))
+    return out
+
+
 def non_decreasing(values: list[float]) -> bool:
     return all(b >= a for a, b in zip(values, values[1:]))
 
@@ -49,8 +65,10 @@ def stage(job: dict, name: str) -> dict:
 
 @pytest.mark.timeout(420)
 def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
-    """Upload -> poll -> kill -9 the worker (main process and pool child) mid-training -> a new worker ->
-    done, training resumed from its checkpoint, one completed run, progress never decreased, results download."""
+    """Upload -> poll -> kill -9 the worker's pool child mid-training -> the loss shows within 10 s, the stage
+    resumes from its checkpoint within 30 s (the Celery main process respawns a child and redelivers the task,
+    which takes the dead runner's lock over) -> done, one completed run, progress never decreased, results
+    download."""
     worker = live.ensure_worker()
     c = live.client("alice")
     progress: list[float] = []
@@ -72,23 +90,29 @@ def test_upload_poll_kill_worker_resume_and_download(live, scene_zip) -> None:
 
     ckpt = wait_for("a training checkpoint", checkpoint_iteration, timeout=240, interval=0.1)
     assert 0 < ckpt < ITERATIONS
-    worker.kill9()
-    assert not worker.alive()
-    # issue 13, item 6: the status says the worker is gone (once its job lock expired, lock_ttl_s = 5 s here)
-    # and from where the stage resumes; /ready says nobody consumes the queues (heartbeat TTL 15 s)
+    children = pool_children(worker.popen.pid)
+    assert len(children) == 1, children  # --concurrency=1
+    os.kill(children[0], signal.SIGKILL)
+    killed = time.monotonic()
+    # issue 44, item 2: the status says the runner is gone within 10 s (its worker's heartbeat no longer lists
+    # its pid), and from where the stage resumes
     lost = wait_for("the status to show the lost worker", lambda: (s if (s := job_status(c, jid))["worker_lost"]
-                                                                   else None), timeout=30)
+                                                                   else None), timeout=15, interval=0.2)
+    seen = time.monotonic() - killed
+    METRICS["pool child killed: loss shown after (s)"] = f"{seen:.1f}"
+    assert seen <= 10, seen
     assert lost["state"] == "running" and lost["stage"] == "train", lost
-    assert re.match(r"worker lost during train \(attempt 1\) at '.*'; retrying from checkpoint (\d+)",
+    assert re.match(r"worker lost during train \(attempt 1\) at '.*'; resuming from checkpoint (\d+)",
                     lost["message"]), lost["message"]
     assert int(re.search(r"checkpoint (\d+)", lost["message"])[1]) >= ckpt
-    ready = wait_for("/ready to miss the worker", lambda: (r if not (r := httpx.get(f"{live.url}/ready").json())
-                                                           ["workers_ok"] else None), timeout=40)
-    assert ready["workers"]["cpu"] == 0 and "no worker consumes the 'cpu' queue" in ready["warnings"], ready
-    live.start_worker()
-    ready = wait_for("/ready to see the new worker", lambda: (r if (r := httpx.get(f"{live.url}/ready").json())
-                                                              ["workers_ok"] else None), timeout=30)
-    assert ready["workers"] == {"cpu": 1, "gpu": 0, "surveys": 1}, ready
+    # the redelivered task takes over as soon as the loss is known: training resumes within 30 s of the kill
+    wait_for("training to resume", lambda: "resumed from" in job_log(c, jid), timeout=35, interval=0.25)
+    resumed_after = time.monotonic() - killed
+    METRICS["pool child killed: training resumed after (s)"] = f"{resumed_after:.1f}"
+    assert resumed_after <= 30, resumed_after
+    assert worker.alive()  # the main process lived on and respawned its child
+    ready = httpx.get(f"{live.url}/ready").json()
+    assert ready["workers"] == {"cpu": 1, "gpu": 0, "surveys": 1} and ready["workers_ok"], ready
     final = wait_job(c, jid, {"done", "failed", "cancelled"}, timeout=240,
                      on_poll=lambda s: progress.append(s["progress"]))
     progress.append(final["progress"])

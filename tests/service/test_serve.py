@@ -18,7 +18,7 @@ from pathlib import Path
 import httpx
 import pytest
 import redis
-from svc_helpers import KEYS, REDIS_URL, REPO, auth, delete_prefix, free_port, wait_for
+from svc_helpers import KEYS, METRICS, REDIS_URL, REPO, auth, delete_prefix, free_port, wait_for
 
 from service.embedded import DEFAULT_REDIS_URL, serve_config
 
@@ -138,3 +138,108 @@ def test_serve_reads_the_environment_and_stops_its_children_on_sigterm(tmp_path:
                     pass
         delete_prefix(client, prefix)
         client.close()
+
+
+def _serve_env(prefix: str, data: Path, **extra: str) -> dict[str, str]:
+    return {**{k: v for k, v in os.environ.items() if not k.startswith("DUALPHYS_")},
+            "PYTHONPATH": os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
+            "OMP_WAIT_POLICY": "PASSIVE", "PYTHONUNBUFFERED": "1",
+            "DUALPHYS_REDIS_URL": REDIS_URL, "DUALPHYS_REDIS_PREFIX": prefix, "DUALPHYS_DATA_DIR": str(data),
+            "DUALPHYS_API_KEYS": json.dumps({v: k for k, v in KEYS.items()}), "DUALPHYS_MIN_FREE_BYTES": "0",
+            **extra}
+
+
+@pytest.mark.timeout(300)
+def test_serve_restarts_a_killed_worker_and_the_job_resumes(tmp_path: Path, scene_zip: bytes) -> None:
+    """kill -9 of the worker's main process under serve (issue 44, item 3): serve reaps it, kills its orphaned
+    pool child (no stage goes on unowned) and starts a new worker; the job shows the loss within 10 s and, its
+    message left unacknowledged by the dead worker (the visibility timeout is the production 15 minutes here), the
+    watchdog re-queues the stage: training resumes from its checkpoint within 30 s and the job finishes."""
+    from svc_helpers import job_log, job_status, upload, wait_job
+
+    prefix = f"dptest-{uuid.uuid4().hex[:8]}-serve"
+    port = free_port()
+    env = _serve_env(prefix, tmp_path / "data", DUALPHYS_WATCHDOG_EVERY_S="1", DUALPHYS_WATCHDOG_GRACE_S="4",
+                     DUALPHYS_LOCK_TTL_S="5", DUALPHYS_LOCK_RETRY_S="1")
+    log_path = tmp_path / "serve.log"
+    with open(log_path, "wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(port), "--no-beat"],
+                                cwd=tmp_path, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, start_new_session=True)
+    client = redis.Redis.from_url(REDIS_URL)
+    started: list[int] = []
+    try:
+        base = f"http://127.0.0.1:{port}"
+
+        def ready() -> bool:
+            assert proc.poll() is None, log_path.read_text(errors="replace")[-3000:]
+            try:
+                return httpx.get(f"{base}/ready", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_for("serve to be ready (with its worker)", ready, timeout=120)
+        c = httpx.Client(base_url=base, headers=auth("alice"), timeout=30)
+        r = upload(c, scene_zip, iterations=400, preset="fast")
+        assert r.status_code == 201, r.text
+        jid = r.json()["id"]
+        wait_for("a training checkpoint", lambda: "checkpoint written" in job_log(c, jid), timeout=200)
+        [worker] = _children(proc.pid)  # --no-beat: the worker is serve's only child
+        pool = _children(worker)
+        started += [worker, *pool]
+        assert len(pool) == 1, pool
+        os.kill(worker, signal.SIGKILL)  # the main process only: its pool child is orphaned, still training
+        killed = time.monotonic()
+        new = wait_for("serve to start a new worker", lambda: [p for p in _children(proc.pid) if p != worker],
+                       timeout=30)
+        started += new
+        wait_for("the orphaned pool child to be killed", lambda: not _alive(pool[0]), timeout=10)
+        lost = wait_for("the loss to show", lambda: s if (s := job_status(c, jid))["worker_lost"] else None,
+                        timeout=15, interval=0.2)
+        seen = time.monotonic() - killed
+        METRICS["serve, worker main killed: loss shown after (s)"] = f"{seen:.1f}"
+        assert seen <= 10, seen
+        assert lost["state"] == "running" and "worker lost during train" in lost["message"], lost
+        wait_for("training to resume", lambda: "resumed from" in job_log(c, jid), timeout=40, interval=0.25)
+        resumed = time.monotonic() - killed
+        METRICS["serve, worker main killed: training resumed after (s)"] = f"{resumed:.1f}"
+        assert resumed <= 30, resumed
+        final = wait_job(c, jid, {"done", "failed", "cancelled"}, timeout=200)
+        assert final["state"] == "done" and final["completed_runs"] == 1, final
+        train = next(s for s in final["stages"] if s["name"] == "train")
+        assert [a["outcome"] for a in train["history"]] == ["worker_lost", "done"], train
+        assert "the worker exited (code -9); restarting it" in log_path.read_text(errors="replace")
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=STOP_BOUND_S)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+        for pid in started:  # only on failure: processes this test started, by pid
+            if _alive(pid):
+                try:
+                    os.killpg(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+        delete_prefix(client, prefix)
+        client.close()
+
+
+def test_a_child_that_keeps_dying_makes_serve_give_up() -> None:
+    """The supervisor restarts a dead child after a doubling backoff and gives up after its limit, asking the
+    server to stop (serve then raises, and `dualphys serve` exits 1 with the reason)."""
+    from service.embedded import Child, Supervisor
+
+    class Server:
+        should_exit = False
+
+    server = Server()
+    dies = Child("worker", [sys.executable, "-c", "import sys; sys.exit(3)"])
+    sup = Supervisor([dies], os.environ, on_give_up=server, max_restarts=2, window_s=600)
+    sup.start()
+    try:
+        wait_for("the supervisor to give up", lambda: sup.gave_up, timeout=30)  # backoff 1 s, 2 s
+    finally:
+        sup.stop()
+    assert sup.gave_up == "the worker exited (code 3) 3 times within 600 s; stopping", sup.gave_up
+    assert server.should_exit is True and len(dies.restarts) == 2

@@ -1,4 +1,5 @@
-"""/health (the process answers) and /ready (Redis reachable, data disk writable with room). No auth."""
+"""/health (the process answers) and /ready (Redis reachable, data disk writable with room, and with
+``require_workers`` a live worker on every queue jobs need). No auth."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ def health() -> HealthOut:
 
 def _workers(services) -> tuple[dict[str, int], list[str]]:
     """Live workers per queue, and a warning for each queue jobs need that nobody consumes. The API stays
-    ready without workers (uploads are accepted and queued); the warnings say why nothing would run."""
+    ready without workers (uploads are accepted and queued) unless ``require_workers`` says the operator started
+    them (``dualphys serve``): then a queue without one makes it not ready."""
     live = services.coord.workers()
     per_queue = {q: sum(q in qs for qs in live.values()) for q in (CPU_QUEUE, GPU_QUEUE, SURVEY_QUEUE)}
     needed = [CPU_QUEUE, SURVEY_QUEUE] + ([GPU_QUEUE] if services.settings.train_queue == GPU_QUEUE else [])
@@ -47,7 +49,8 @@ def ready(services: ServicesDep) -> JSONResponse:
                     warnings=warnings)
     problems = [msg for bad, msg in ((not redis_ok, "Redis is not reachable"),
                                      (not writable, "the data folder is not writable"),
-                                     (free < s.min_free_bytes, "the data disk is nearly full")) if bad]
+                                     (free < s.min_free_bytes, "the data disk is nearly full"),
+                                     (s.require_workers and bool(warnings), "; ".join(warnings))) if bad]
     if not problems:
         return JSONResponse(body.model_dump())
     body.status = "not_ready"

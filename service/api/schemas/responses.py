@@ -87,8 +87,9 @@ class WebhookOut(BaseModel):
 class JobOut(BaseModel):
     id: str
     state: str = Field(..., description="queued | running | cancelling | done | failed | cancelled")
-    worker_lost: bool = Field(False, description="the running stage's worker is gone; the stage waits to be "
-                                                 "delivered again (the message says from where it resumes)")
+    worker_lost: bool = Field(False, description="the running stage's runner is gone (its worker's heartbeat "
+                                                 "says so); the stage is taken over or re-queued (the message "
+                                                 "says from where it resumes)")
     stage: str | None = Field(None, description="the stage running now (or last run)")
     progress: float = Field(..., ge=0, le=100, description="0-100, never decreases")
     message: str
