@@ -27,8 +27,8 @@ numba compiles a parallel kernel's loop body (the parfor "gufunc") into a librar
 build (the weak symbol binds to the definition loaded first); the disk cache keeps only the kernel's object, so a
 process that loads it runs the re-optimised copy. With fastmath ``reassoc`` (which the backward's SIMD lane sums
 need) the second pass orders float sums differently: cached and fresh gradients differed in their last bits and
-a resumed training drifted from the straight run. The kernels without ``reassoc`` come out identical either way
-(tests/splat/test_kernel_cache.py; docs/DECISIONS.md, "Rendering engine").
+a resumed training drifted from the straight run. Every other kernel, ``reduce_items`` (fastmath too) included,
+gives the same bits loaded as compiled (tests/splat/test_kernel_cache.py; docs/DECISIONS.md, "Rendering engine").
 """
 
 from __future__ import annotations
