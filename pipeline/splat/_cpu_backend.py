@@ -6,7 +6,8 @@
 
 The split mirrors gsplat, so ``means2d`` is a real node of the graph and ``info["means2d"].grad`` is filled by
 backward (DefaultStrategy reads it). numba is imported, and the kernels compiled or loaded from the on-disk
-cache (``cache=True``), on the first call, never at import. Kernels use numba's thread pool (all cores by default,
+cache (``cache=True``), on the first call, never at import; ``raster_bwd`` always compiles (3-5 s), so every
+process runs the same code (``_cpu_raster_kernels``' docstring). Kernels use numba's thread pool (all cores by default,
 ``NUMBA_NUM_THREADS`` to change), with dynamic scheduling so both cores stay busy when other jobs interfere.
 
 The thread pool is OpenMP (or numba's own workqueue where OpenMP is missing), never TBB, whatever the machine
@@ -63,7 +64,8 @@ def _kernels():
 
     if not _announced:
         _announced = True
-        logger.info("cpu rasterizer: numba kernels load from cache or compile now (~30-60 s when uncached)")
+        logger.info("cpu rasterizer: numba kernels load from cache or compile now (~30-60 s when uncached, 3-5 s "
+                    "cached: raster_bwd always compiles)")
     return _cpu_project_kernels, _cpu_raster_kernels
 
 

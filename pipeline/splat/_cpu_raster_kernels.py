@@ -20,6 +20,15 @@ Data flow (per call; C cameras share one flat list of C * n_tiles tiles):
 
 Bit-reproducibility with the torch reference: ``raster_fwd`` is compiled without fastmath and evaluates sigma
 with exactly ``_torch_ref.pair_sigma``'s operation order, so its alpha >= 1/255 decisions match the reference's.
+
+Bit-reproducibility across processes: ``raster_bwd`` is never cached (``cache=False``), every process compiles it.
+numba compiles a parallel kernel's loop body (the parfor "gufunc") into a library of its own and links a
+``linkonce_odr`` copy into the kernel, which LLVM optimises a second time. A fresh process runs the body's first
+build (the weak symbol binds to the definition loaded first); the disk cache keeps only the kernel's object, so a
+process that loads it runs the re-optimised copy. With fastmath ``reassoc`` (which the backward's SIMD lane sums
+need) the second pass orders float sums differently: cached and fresh gradients differed in their last bits and
+a resumed training drifted from the straight run. Every other kernel, ``reduce_items`` (fastmath too) included,
+gives the same bits loaded as compiled (tests/splat/test_kernel_cache.py; docs/DECISIONS.md, "Rendering engine").
 """
 
 from __future__ import annotations
@@ -401,7 +410,7 @@ def raster_fwd(rows, tile_offsets, width, height, backgrounds, out, out_t, masks
                     out[c, y, x, f] = acc[f, p] + T[p] * backgrounds[c, f]
 
 
-@njit(parallel=True, cache=True, fastmath=FASTMATH)
+@njit(parallel=True, cache=False, fastmath=FASTMATH)  # never cached: module docstring, across processes
 def raster_bwd(rows, tile_offsets, tile_end, masks, pair_item, width, height, backgrounds, out_t, v_out, v_alpha,
                acc):  # fmt: skip
     """Backward of ``raster_fwd`` (3DGS's back-to-front recursion), one fused SIMD pass per pair.

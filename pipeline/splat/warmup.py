@@ -5,7 +5,8 @@ shared cores (docs/DECISIONS.md, "Whole-job speed"), paid inside the mode probe.
 Docker image runs it at build time, as the user that owns the installed package, so the cache lands next to the
 sources where every later process finds it) renders a small random scene forward and backward through the
 ``cpu`` backend in both render modes and every SH degree a job uses, which calls every kernel with the argument
-types a job passes. Idempotent: with the cache filled it only loads it (~3 s).
+types a job passes. Idempotent: with the cache filled it only loads it (~3 s), except ``raster_bwd``, which is
+never cached and compiles in every process (3-5 s; ``_cpu_raster_kernels``' docstring).
 """
 
 from __future__ import annotations
