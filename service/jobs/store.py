@@ -53,6 +53,14 @@ class JobStore:
     def layout(self, job_id: str) -> JobLayout:
         return JobLayout(self.job_dir(job_id))
 
+    def pull(self, job_id: str) -> None:
+        """Bring this host's job folder up to date before a stage runs: here it is the truth, so nothing to do
+        (``service.storage.jobs.SyncedJobStore`` fetches from the object store)."""
+
+    def mirror(self, job_id: str) -> Path:
+        """The job folder with the files the API serves up to date (here: as it is)."""
+        return self.job_dir(job_id)
+
     def manifest_path(self, job_id: str) -> Path:
         return self.layout(job_id).manifest
 

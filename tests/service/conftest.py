@@ -293,3 +293,16 @@ def live(tmp_path_factory, redis_client) -> Iterator[LiveStack]:
         delete_prefix(redis_client, prefix)
 
 
+
+
+# ---------------------------------------------------------------- object store (workers on many hosts)
+
+
+@pytest.fixture(scope="session")
+def object_server(tmp_path_factory):
+    """A real S3 server (SeaweedFS ``weed server -s3``, tests/service/object_server.py) on free local ports."""
+    from object_server import start_object_server
+
+    server = start_object_server(tmp_path_factory.mktemp("object-store"))
+    yield server
+    server.stop()
