@@ -115,6 +115,11 @@ class Settings(BaseSettings):
     object_store_secret_key: SecretStr | None = None
     object_store_region: str = "us-east-1"
 
+    @field_validator("object_store_url", "object_store_access_key", "object_store_secret_key", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, v):
+        return None if v == "" else v  # Compose passes ``${VAR:-}`` as an empty string
+
     @field_validator("api_keys")
     @classmethod
     def _keys_long_enough(cls, v: dict[SecretStr, str]) -> dict[SecretStr, str]:

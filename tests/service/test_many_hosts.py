@@ -14,6 +14,7 @@ import io
 import json
 import os
 import re
+import subprocess
 import sys
 import time
 import uuid
@@ -48,8 +49,23 @@ BUCKET = "dualphys-test"
 HOSTS = {"cpu-box": "cpu,surveys", "train-a": "gpu", "train-b": "gpu"}
 
 
+TIMINGS = {"seconds", "render_ms", "elapsed_s", "timings"}  # wall-clock fields: never equal between two runs
+
+
+def untimed(obj):
+    if isinstance(obj, dict):
+        return {k: untimed(v) for k, v in obj.items() if k not in TIMINGS}
+    if isinstance(obj, list):
+        return [untimed(v) for v in obj]
+    return obj
+
+
 @pytest.fixture()
 def hosts(tmp_path, redis_client, object_server):
+    # every process of this test loads the rasterizer's kernels from numba's cache: a freshly compiled raster_bwd
+    # differs in the last bits from a cached one (being fixed elsewhere), which makes two runs' PLYs differ
+    subprocess.run([sys.executable, "-m", "cli.main", "warmup"], cwd=Path(__file__).resolve().parents[2],
+                   check=True, capture_output=True, timeout=300)
     prefix = f"dptest-{uuid.uuid4().hex[:8]}-hosts"
     stack = LiveStack(root=tmp_path, prefix=prefix, env={}, port=free_port())
     for d in (stack.data_dir, stack.api_tmp):
@@ -195,8 +211,10 @@ def test_stages_on_three_hosts_with_a_kill_resume_from_the_object_store(hosts, o
     ref_arts = {a.path: a for a in list_artifacts(ref)}
     assert sorted(ref_arts) == sorted(by_path)
     ref_report = json.loads(JobLayout(ref).report_json.read_text())
-    assert ref_report["metrics"] == report["metrics"]
+    assert untimed(ref_report["metrics"]) == untimed(report["metrics"])
     assert ref_report["model"]["n_gaussians"] == report["model"]["n_gaussians"]
+    evaluate = object_server.client().get_object(Bucket=BUCKET, Key=f"{stack.prefix}/jobs/{jid}/evaluate.json")
+    assert untimed(json.loads(evaluate["Body"].read())) == untimed(json.loads(JobLayout(ref).evaluate.read_text()))
     same_ply = ref_arts["output/reconstruction.ply"].sha256 == by_path["output/reconstruction.ply"]["sha256"]
     METRICS["many hosts (12 views, 400 iterations, API + 3 workers, kill -9 mid-training)"] = (
         f"killed at {killed_at:.0f} s after upload (checkpoint {ckpt} in the store), resumed at {resumed[0]}, "
