@@ -19,6 +19,7 @@ import json
 import logging
 import os
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -75,6 +76,7 @@ class FolderMirror:
     def pull(self, only: Callable[[str], bool] | None = None) -> tuple[int, int]:
         """Bring the folder up to the store's state (for files ``only`` accepts); returns (downloaded, deleted)."""
         with self.lock:
+            t0 = time.perf_counter()
             remote = {n[len(self.prefix):]: o for n, o in self.objects.list(self.prefix).items()}
             if not remote and not self.root.exists():
                 return 0, 0  # nothing there, nothing here: no folder made
@@ -97,7 +99,7 @@ class FolderMirror:
                 gone += 1
             if got or gone:
                 self._save(index)
-                log.info("pulled %s: %d files, %d deleted", self.prefix, got, gone)
+                log.info("pulled %s: %d files, %d deleted in %.2f s", self.prefix, got, gone, time.perf_counter() - t0)
             return got, gone
 
     # ---- push
