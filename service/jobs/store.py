@@ -53,8 +53,8 @@ class JobStore:
     def layout(self, job_id: str) -> JobLayout:
         return JobLayout(self.job_dir(job_id))
 
-    def pull(self, job_id: str) -> None:
-        """Bring this host's job folder up to date before a stage runs: here it is the truth, so nothing to do
+    def pull(self, job_id: str, stage: str | None = None) -> None:
+        """Bring this host's job folder up to date before ``stage`` runs: here it is the truth, so nothing to do
         (``service.storage.jobs.SyncedJobStore`` fetches from the object store)."""
 
     def mirror(self, job_id: str) -> Path:

@@ -31,7 +31,8 @@ log = logging.getLogger(__name__)
 JOBS = "jobs/"
 MANIFEST = "manifest.json"
 LOG = "log.txt"
-API_SKIPS = ("input/", "upload/", "scene/")  # read by stages only: never mirrored to the API
+INPUTS = ("input/", "upload/")  # the upload and its unpacking: read by ingest only
+API_SKIPS = (*INPUTS, "scene/")  # read by stages only: never mirrored to the API
 
 
 def served(rel: str) -> bool:
@@ -110,9 +111,10 @@ class SyncedJobStore(JobStore):
             self._mirrors.pop(job_id, None)
 
     # ---- the job's files
-    def pull(self, job_id: str) -> None:
-        """Bring this host's job folder up to the store's state (a worker, before it runs a stage)."""
-        self._folder(job_id).pull()
+    def pull(self, job_id: str, stage: str | None = None) -> None:
+        """Bring this host's job folder up to the store's state (a worker, before it runs ``stage``); the upload
+        (``input/``, up to ``max_upload_bytes``) only for ingest, the one stage that reads it."""
+        self._folder(job_id).pull(only=None if stage in (None, "ingest") else _not_input)
 
     def mirror(self, job_id: str) -> Path:
         """The job folder with what the API serves brought up to date (unchanged files are not fetched)."""
@@ -133,6 +135,10 @@ class SyncedJobStore(JobStore):
     def last_checkpoint_iteration(self, job_id: str, tail_bytes: int = 256 << 10) -> int | None:
         self._folder(job_id).pull(only=_is_log)
         return super().last_checkpoint_iteration(job_id, tail_bytes)
+
+
+def _not_input(rel: str) -> bool:
+    return not rel.startswith(INPUTS)
 
 
 def _is_log(rel: str) -> bool:

@@ -81,7 +81,13 @@ def test_the_synced_store_keeps_manifests_and_files_in_the_object_store(objects,
     api.write(_manifest(jid))  # pushes the folder, then the manifest
     assert worker.exists(jid) and worker.read(jid).owner == "alice"
     assert not worker.job_dir(jid).exists()  # reading the manifest fetches no file
-    worker.pull(jid)
+    (api.layout(jid).input).mkdir()
+    api.layout(jid).upload.write_bytes(b"zip")
+    api.write(api.read(jid))
+    worker.pull(jid, "sfm")  # the upload only travels to ingest
+    assert not worker.layout(jid).input.exists()
+    worker.pull(jid, "ingest")
+    assert worker.layout(jid).upload.read_bytes() == b"zip"
     assert (worker.layout(jid).images / "a.png").read_bytes() == b"png"
     assert worker.layout(jid).marker("ingest").is_file()
     # the worker's checkpoint and results reach the store with its next manifest write; the API mirrors what it
