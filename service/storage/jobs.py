@@ -17,6 +17,7 @@ import logging
 import threading
 from pathlib import Path
 
+from botocore.exceptions import BotoCoreError, ClientError
 from pydantic import ValidationError
 
 from pipeline.job.markers import atomic_write_text
@@ -64,7 +65,18 @@ class SyncedJobStore(JobStore):
 
     def ensure(self) -> None:
         super().ensure()
-        self.objects.ensure_bucket()
+        try:
+            self.objects.ensure_bucket()
+        except (BotoCoreError, ClientError) as e:  # the API starts anyway; /ready says what is missing
+            log.error("object store %s: cannot reach or create the bucket: %s", self.objects.bucket, e)
+
+    def reachable(self) -> bool:
+        try:
+            self.objects.ping()
+            return True
+        except (BotoCoreError, ClientError) as e:
+            log.warning("object store unreachable: %s", e)
+            return False
 
     # ---- the manifest
     def exists(self, job_id: str) -> bool:

@@ -31,13 +31,13 @@ class RemoteObject:
 
 class ObjectStore:
     def __init__(self, url: str, bucket: str, prefix: str, access_key: str | None, secret_key: str | None,
-                 region: str = "us-east-1", timeout_s: float = 30.0):
+                 region: str = "us-east-1", timeout_s: float = 60.0, connect_timeout_s: float = 5.0):
         self.bucket, self.prefix = bucket, prefix.strip("/")
         self.client = boto3.session.Session().client(
             "s3", endpoint_url=url, aws_access_key_id=access_key, aws_secret_access_key=secret_key,
             region_name=region,
-            config=Config(s3={"addressing_style": "path"}, connect_timeout=timeout_s, read_timeout=timeout_s,
-                          retries={"max_attempts": 5, "mode": "standard"}))
+            config=Config(s3={"addressing_style": "path"}, connect_timeout=connect_timeout_s, read_timeout=timeout_s,
+                          retries={"max_attempts": 4, "mode": "standard"}))
 
     def key(self, name: str) -> str:
         return f"{self.prefix}/{name}" if self.prefix else name

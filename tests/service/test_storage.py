@@ -119,3 +119,25 @@ def test_without_an_object_store_the_data_folder_is_the_store(tmp_path, unit_pre
     assert type(store) is JobStore
     assert type(job_store(make_settings(tmp_path, unit_prefix, object_store_url="http://127.0.0.1:1"))) \
         is SyncedJobStore
+
+
+def test_ready_reports_the_object_store(object_server, tmp_path, unit_prefix) -> None:
+    from fastapi.testclient import TestClient
+    from object_server import ACCESS_KEY, SECRET_KEY
+
+    from service.app import create_app
+
+    store = dict(object_store_bucket=BUCKET, object_store_access_key=ACCESS_KEY, object_store_secret_key=SECRET_KEY)
+    up = make_settings(tmp_path / "up", unit_prefix, object_store_url=object_server.url, **store)
+    with TestClient(create_app(up)) as c:
+        r = c.get("/ready")
+        assert r.status_code == 200 and r.json()["object_store"] is True, r.json()
+    from svc_helpers import free_port
+
+    down = make_settings(tmp_path / "down", unit_prefix, object_store_url=f"http://127.0.0.1:{free_port()}", **store)
+    with TestClient(create_app(down)) as c:  # starts without its store
+        r = c.get("/ready")
+        assert r.status_code == 503 and r.json()["object_store"] is False
+        assert r.json()["error"]["code"] == "not_ready" and "object store" in r.json()["error"]["message"]
+    with TestClient(create_app(make_settings(tmp_path / "none", unit_prefix))) as c:
+        assert c.get("/ready").json()["object_store"] is None
