@@ -116,7 +116,11 @@ def test_the_synced_store_keeps_manifests_and_files_in_the_object_store(objects,
 
 def test_without_an_object_store_the_data_folder_is_the_store(tmp_path, unit_prefix) -> None:
     store = job_store(make_settings(tmp_path, unit_prefix))
-    assert type(store) is JobStore
+    assert type(store) is JobStore and store.reachable() is None
+    # Compose hands ``${DUALPHYS_OBJECT_STORE_URL:-}`` over as an empty string: the same as unset
+    empty = make_settings(tmp_path, unit_prefix, object_store_url="", object_store_access_key="")
+    assert empty.object_store_url is None and empty.object_store_access_key is None
+    assert type(job_store(empty)) is JobStore
     assert type(job_store(make_settings(tmp_path, unit_prefix, object_store_url="http://127.0.0.1:1"))) \
         is SyncedJobStore
 
