@@ -36,6 +36,7 @@ class ObjectServer:
     url: str
     popen: subprocess.Popen
     log_path: Path
+    grpc_sockets: list[Path]  # weed puts these in /tmp whatever TMPDIR says; removed at stop
 
     def client(self):
         return boto3.client("s3", endpoint_url=self.url, aws_access_key_id=ACCESS_KEY,
@@ -54,6 +55,8 @@ class ObjectServer:
         except ProcessLookupError:
             pass
         self.popen.wait(timeout=10)
+        for sock in self.grpc_sockets:
+            sock.unlink(missing_ok=True)
 
 
 def start_object_server(root: Path) -> ObjectServer:
@@ -64,15 +67,18 @@ def start_object_server(root: Path) -> ObjectServer:
                                                "credentials": [{"accessKey": ACCESS_KEY,
                                                                 "secretKey": SECRET_KEY}]}]}))
     ports = {name: free_port() for name in ("master", "volume", "filer", "s3")}
+    grpc = {name: free_port() for name in ports}
     args = [weed_binary(), "server", f"-dir={data}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-volume.max=8",
-            "-s3", f"-s3.config={cfg}", "-s3.port.iceberg=0", "-s3.port.lance=0", f"-metricsPort={free_port()}"]
+            "-s3", f"-s3.config={cfg}", "-s3.port.iceberg=0", "-s3.port.lance=0", f"-metricsPort={free_port()}",
+            f"-filer.localSocket={root / 'filer.sock'}", f"-s3.localSocket={root / 's3.sock'}"]
     for name, port in ports.items():
-        args += [f"-{name}.port={port}", f"-{name}.port.grpc={free_port()}"]
+        args += [f"-{name}.port={port}", f"-{name}.port.grpc={grpc[name]}"]
     log_path = root / "weed.log"
     with open(log_path, "wb") as out:
         popen = subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                 start_new_session=True)
-    server = ObjectServer(f"http://127.0.0.1:{ports['s3']}", popen, log_path)
+                                 start_new_session=True, env={**os.environ, "TMPDIR": str(root)})  # its sockets
+    server = ObjectServer(f"http://127.0.0.1:{ports['s3']}", popen, log_path,
+                          [Path(f"/tmp/seaweedfs-{name}-grpc-{port}.sock") for name, port in grpc.items()])
 
     def answers() -> bool:
         assert popen.poll() is None, f"weed exited:\n{log_path.read_text(errors='replace')[-3000:]}"
