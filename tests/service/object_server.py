@@ -68,7 +68,8 @@ def start_object_server(root: Path) -> ObjectServer:
                                                                 "secretKey": SECRET_KEY}]}]}))
     ports = {name: free_port() for name in ("master", "volume", "filer", "s3")}
     grpc = {name: free_port() for name in ports}
-    args = [weed_binary(), "server", f"-dir={data}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-volume.max=8",
+    args = [weed_binary(), "server", f"-dir={data}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-volume.max=64",
+            "-master.volumeSizeLimitMB=64",
             "-s3", f"-s3.config={cfg}", "-s3.port.iceberg=0", "-s3.port.lance=0", f"-metricsPort={free_port()}",
             f"-filer.localSocket={root / 'filer.sock'}", f"-s3.localSocket={root / 's3.sock'}"]
     for name, port in ports.items():
