@@ -306,3 +306,59 @@ def object_server(tmp_path_factory):
     server = start_object_server(tmp_path_factory.mktemp("object-store"))
     yield server
     server.stop()
+
+
+HOSTS = {"cpu-box": "cpu,surveys", "train-a": "gpu", "train-b": "gpu"}  # worker name -> the queues it consumes
+HOSTS_BUCKET = "dualphys-test"
+
+
+@pytest.fixture()
+def hosts(tmp_path, redis_client, object_server) -> Iterator[LiveStack]:
+    """The API and one Celery worker per ``HOSTS`` entry, each with its own data folder (nothing shared but Redis
+    and the object store), ``train_queue=gpu``. The numba kernels are compiled into their cache first, so every
+    process loads them from there: a freshly compiled raster_bwd differs in the last bits from a cached one (being
+    fixed elsewhere), which would make this run's PLY differ from a one-host run's."""
+    subprocess.run([sys.executable, "-m", "cli.main", "warmup"], cwd=REPO, check=True, capture_output=True,
+                   timeout=300)
+    prefix = f"dptest-{uuid.uuid4().hex[:8]}-hosts"
+    stack = LiveStack(root=tmp_path, prefix=prefix, env={}, port=free_port())
+    for d in (stack.data_dir, stack.api_tmp):
+        d.mkdir()
+    stack.env = {
+        **{k: v for k, v in os.environ.items() if not k.startswith("DUALPHYS_")},
+        "OMP_WAIT_POLICY": "PASSIVE",
+        "PYTHONUNBUFFERED": "1",
+        "PYTHONPATH": os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
+        "DUALPHYS_API_KEYS": json.dumps({v: k for k, v in KEYS.items()}),
+        "DUALPHYS_DATA_DIR": str(stack.data_dir),  # the API's own folder; each worker gets another below
+        "DUALPHYS_REDIS_URL": REDIS_URL,
+        "DUALPHYS_REDIS_PREFIX": prefix,
+        "DUALPHYS_MAX_UPLOAD_BYTES": str(MAX_UPLOAD),
+        "DUALPHYS_ARCHIVE_MAX_ENTRIES": str(MAX_ENTRIES),
+        "DUALPHYS_MIN_FREE_BYTES": "0",
+        "DUALPHYS_VISIBILITY_TIMEOUT_S": "8",
+        "DUALPHYS_RESTORE_INTERVAL_S": "1",
+        "DUALPHYS_LOCK_TTL_S": "5",
+        "DUALPHYS_LOCK_RETRY_S": "1",
+        "DUALPHYS_TRAIN_QUEUE": "gpu",
+        **object_server.env(HOSTS_BUCKET, prefix),
+    }
+    try:
+        stack.start_api()
+        for name, queues in HOSTS.items():
+            start_host(stack, name, queues)
+        yield stack
+    finally:
+        stack.teardown()
+        delete_prefix(redis_client, prefix)
+
+
+def start_host(stack: LiveStack, name: str, queues: str) -> Proc:
+    folder = stack.root / f"{name}-data"
+    folder.mkdir(exist_ok=True)
+    env = {**stack.env, "DUALPHYS_DATA_DIR": str(folder)}
+    proc = stack._spawn(name, [sys.executable, "-m", "celery", "-A", "worker.app", "worker", "--pool=prefork",
+                               "--concurrency=1", "-Q", queues, "--loglevel=INFO", "--without-gossip",
+                               "--without-mingle", "--without-heartbeat", "-n", f"{name}@%h"], env)
+    wait_for(f"{name} to be ready", lambda: stack._ready(proc), timeout=60)
+    return proc

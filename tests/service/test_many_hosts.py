@@ -12,30 +12,12 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import re
-import subprocess
-import sys
 import time
-import uuid
 import zipfile
-from pathlib import Path
 
 import pytest
-from conftest import LiveStack
-from svc_helpers import (
-    KEYS,
-    MAX_ENTRIES,
-    MAX_UPLOAD,
-    METRICS,
-    REDIS_URL,
-    delete_prefix,
-    free_port,
-    job_log,
-    upload,
-    wait_for,
-    wait_job,
-)
+from svc_helpers import METRICS, job_log, upload, wait_for, wait_job
 
 from pipeline.job.layout import JobLayout
 from pipeline.job.options import JobOptions
@@ -45,10 +27,7 @@ from service.jobs.artifacts import list_artifacts
 pytestmark = pytest.mark.slow
 
 ITERATIONS = 400  # the fast preset checkpoints every 80: a checkpoint reaches the store well before the end
-BUCKET = "dualphys-test"
-HOSTS = {"cpu-box": "cpu,surveys", "train-a": "gpu", "train-b": "gpu"}
-
-
+BUCKET = "dualphys-test"  # the ``hosts`` fixture's (tests/service/conftest.py)
 TIMINGS = {"seconds", "render_ms", "elapsed_s", "timings"}  # wall-clock fields: never equal between two runs
 
 
@@ -60,58 +39,7 @@ def untimed(obj):
     return obj
 
 
-@pytest.fixture()
-def hosts(tmp_path, redis_client, object_server):
-    # every process of this test loads the rasterizer's kernels from numba's cache: a freshly compiled raster_bwd
-    # differs in the last bits from a cached one (being fixed elsewhere), which makes two runs' PLYs differ
-    subprocess.run([sys.executable, "-m", "cli.main", "warmup"], cwd=Path(__file__).resolve().parents[2],
-                   check=True, capture_output=True, timeout=300)
-    prefix = f"dptest-{uuid.uuid4().hex[:8]}-hosts"
-    stack = LiveStack(root=tmp_path, prefix=prefix, env={}, port=free_port())
-    for d in (stack.data_dir, stack.api_tmp):
-        d.mkdir()
-    stack.env = {
-        **{k: v for k, v in os.environ.items() if not k.startswith("DUALPHYS_")},
-        "OMP_WAIT_POLICY": "PASSIVE",
-        "PYTHONUNBUFFERED": "1",
-        "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[2]),
-                                       *filter(None, [os.environ.get("PYTHONPATH")])]),
-        "DUALPHYS_API_KEYS": json.dumps({v: k for k, v in KEYS.items()}),
-        "DUALPHYS_DATA_DIR": str(stack.data_dir),  # the API's own folder; each worker gets another below
-        "DUALPHYS_REDIS_URL": REDIS_URL,
-        "DUALPHYS_REDIS_PREFIX": prefix,
-        "DUALPHYS_MAX_UPLOAD_BYTES": str(MAX_UPLOAD),
-        "DUALPHYS_ARCHIVE_MAX_ENTRIES": str(MAX_ENTRIES),
-        "DUALPHYS_MIN_FREE_BYTES": "0",
-        "DUALPHYS_VISIBILITY_TIMEOUT_S": "8",
-        "DUALPHYS_RESTORE_INTERVAL_S": "1",
-        "DUALPHYS_LOCK_TTL_S": "5",
-        "DUALPHYS_LOCK_RETRY_S": "1",
-        "DUALPHYS_TRAIN_QUEUE": "gpu",
-        **object_server.env(BUCKET, prefix),
-    }
-    try:
-        stack.start_api()
-        for name, queues in HOSTS.items():
-            start_host(stack, name, queues)
-        yield stack
-    finally:
-        stack.teardown()
-        delete_prefix(redis_client, prefix)
-
-
-def start_host(stack: LiveStack, name: str, queues: str):
-    folder = stack.root / f"{name}-data"
-    folder.mkdir(exist_ok=True)
-    env = {**stack.env, "DUALPHYS_DATA_DIR": str(folder)}
-    proc = stack._spawn(name, [sys.executable, "-m", "celery", "-A", "worker.app", "worker", "--pool=prefork",
-                               "--concurrency=1", "-Q", queues, "--loglevel=INFO", "--without-gossip",
-                               "--without-mingle", "--without-heartbeat", "-n", f"{name}@%h"], env)
-    wait_for(f"{name} to be ready", lambda: stack._ready(proc), timeout=60)
-    return proc
-
-
-def ran_here(stack: LiveStack, host: str, job_id: str) -> list[str]:
+def ran_here(stack, host: str, job_id: str) -> list[str]:
     """The stages the host's worker started for the job (its own log, not the job's)."""
     text = stack.procs[host].log_path.read_text(errors="replace")
     return re.findall(rf"job {job_id}: stage (\w+) started", text)
