@@ -13,12 +13,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from pydantic import SecretStr
+
 from .core.coord import Coordinator
 from .core.dispatch import Dispatcher, TaskSender
 from .core.settings import Settings
 from .jobs.idempotency import IdempotencyIndex
 from .jobs.ops import JobOps
 from .jobs.store import JobStore
+from .storage.jobs import SyncedJobStore
+from .storage.objects import ObjectStore
 from .surveys.registry import SurveyRegistry
 from .surveys.scan import ScanConfig
 
@@ -41,7 +45,7 @@ class Components:
 def compose(settings: Settings, celery_app: TaskSender | None) -> Components:
     """Everything derived from ``settings``; stages and scans are queued through ``celery_app`` (None: a set that
     cannot queue anything, for callers that only read or that put their own dispatcher on ``jobs``)."""
-    store = JobStore(settings.jobs_dir)
+    store = job_store(settings)
     coord = Coordinator.from_url(settings.redis_url, settings.redis_prefix)
     dispatcher = Dispatcher(celery_app, settings.train_queue) if celery_app is not None else None
     return Components(
@@ -54,6 +58,20 @@ def compose(settings: Settings, celery_app: TaskSender | None) -> Components:
         scan_config=scan_config(settings),
         idempotency=IdempotencyIndex(settings.data_dir / "idempotency"),
     )
+
+
+def job_store(settings: Settings) -> JobStore:
+    """The data folder's job store, or with ``object_store_url`` the object store's (this host's folder its copy)."""
+    if settings.object_store_url is None:
+        return JobStore(settings.jobs_dir)
+    return SyncedJobStore(settings.jobs_dir, ObjectStore(
+        settings.object_store_url, settings.object_store_bucket, settings.object_store_prefix,
+        _secret(settings.object_store_access_key), _secret(settings.object_store_secret_key),
+        settings.object_store_region))
+
+
+def _secret(value: SecretStr | None) -> str | None:
+    return value.get_secret_value() if value is not None else None
 
 
 def scan_config(settings: Settings) -> ScanConfig:

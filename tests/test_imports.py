@@ -189,3 +189,16 @@ def test_the_pipeline_imports_nothing_of_the_service():
     bad = sorted(f"{m} -> {t}" for m, ts in graph.items() if m.startswith("pipeline") for t in ts
                  if t.split(".")[0] in TOP)
     assert not bad, bad
+
+
+def test_the_object_store_layer_sits_between_the_job_store_and_the_composition_root():
+    """``service.storage`` (the object store, issue 44) builds on ``service.jobs`` and the pipeline's job folder;
+    only ``service.compose`` picks it, so with no object store configured nothing else depends on it."""
+    graph = _graph()
+    below = ("service.storage", "service.jobs", "service.core", "pipeline.job")
+    up = sorted(f"{m} -> {t}" for m, ts in graph.items() if m.startswith("service.storage") for t in ts
+                if not t.startswith(below))
+    assert not up, up
+    users = sorted(m for m, ts in graph.items() if not m.startswith("service.storage")
+                   and any(t.startswith("service.storage") for t in ts))
+    assert users == ["service.compose"], users

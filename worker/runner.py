@@ -88,6 +88,7 @@ def execute_stage(rt: Components, job_id: str, stage: str, run_id: str, hostname
     if lock is None:
         return Outcome("busy", retry_after=rt.settings.lock_retry_s, detail="another runner holds the job")
     try:
+        rt.store.pull(job_id, stage)  # another host may have run the stages before this one (service.storage)
         with job_log(rt.store, job_id, rt.settings.data_dir):
             return _execute_locked(rt, job_id, stage, run_id, lock)
     finally:

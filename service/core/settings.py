@@ -116,6 +116,22 @@ class Settings(BaseSettings):
     webhook_timeout_s: float = Field(10.0, gt=0)
     """Connect and read timeout of one attempt; a receiver slower than this counts as a failed attempt."""
 
+    # ---- object store (workers on many hosts without a shared disk; service.storage, docs/SERVICE.md)
+    object_store_url: str | None = None
+    """S3 endpoint (``http://store:8333``). Unset: the data folder is the only store and must be shared by the API
+    and every worker. Set: manifests, logs and job files live in the bucket and each host's data folder is its copy."""
+    object_store_bucket: str = "dualphys"
+    object_store_prefix: str = "dualphys"
+    """Every object this deployment writes is ``<prefix>/jobs/<id>/<path in the job folder>``."""
+    object_store_access_key: SecretStr | None = None
+    object_store_secret_key: SecretStr | None = None
+    object_store_region: str = "us-east-1"
+
+    @field_validator("object_store_url", "object_store_access_key", "object_store_secret_key", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, v):
+        return None if v == "" else v  # Compose passes ``${VAR:-}`` as an empty string
+
     @field_validator("api_keys")
     @classmethod
     def _keys_long_enough(cls, v: dict[SecretStr, str]) -> dict[SecretStr, str]:

@@ -230,7 +230,7 @@ class JobOps:
             if self.coord.run_lock_held(job_id):
                 raise JobConflict("job_active", "the job's last runner has not stopped yet; retry in a moment")
             opts = JobOptions.from_json(m.options)
-            start = first_unfinished(self.store.job_dir(job_id), opts)
+            start = first_unfinished(self.job_dir(job_id), opts)
             if start is None:
                 raise JobConflict("nothing_to_retry", "every stage of this job is already complete")
             stages = pipeline_stages()
@@ -260,4 +260,5 @@ class JobOps:
                 and (survey_id is None or m.survey_id == survey_id)]
 
     def job_dir(self, job_id: str) -> Path:
-        return self.store.job_dir(job_id)
+        """The job's folder as the API reads it (with an object store: the mirror, brought up to date)."""
+        return self.store.mirror(job_id)

@@ -53,6 +53,18 @@ class JobStore:
     def layout(self, job_id: str) -> JobLayout:
         return JobLayout(self.job_dir(job_id))
 
+    def pull(self, job_id: str, stage: str | None = None) -> None:
+        """Bring this host's job folder up to date before ``stage`` runs: here it is the truth, so nothing to do
+        (``service.storage.jobs.SyncedJobStore`` fetches from the object store)."""
+
+    def reachable(self) -> bool | None:
+        """Whether the job store's backing service answers (None: there is none, the folder is the store)."""
+        return None
+
+    def mirror(self, job_id: str) -> Path:
+        """The job folder with the files the API serves up to date (here: as it is)."""
+        return self.job_dir(job_id)
+
     def manifest_path(self, job_id: str) -> Path:
         return self.layout(job_id).manifest
 

@@ -329,3 +329,55 @@ def private_live(tmp_path, private_redis) -> Iterator[LiveStack]:
         yield start_stack(stack, private_redis.url)
     finally:
         stack.teardown()
+
+
+# ---------------------------------------------------------------- object store (workers on many hosts)
+
+
+@pytest.fixture(scope="session")
+def object_server(tmp_path_factory):
+    """A real S3 server (SeaweedFS ``weed server -s3``, tests/service/object_server.py) on free local ports."""
+    from object_server import start_object_server
+
+    server = start_object_server(tmp_path_factory.mktemp("object-store"))
+    yield server
+    server.stop()
+
+
+HOSTS = {"cpu-box": "cpu,surveys", "train-a": "gpu", "train-b": "gpu"}  # worker name -> the queues it consumes
+HOSTS_BUCKET = "dualphys-test"
+
+
+@pytest.fixture()
+def hosts(tmp_path, redis_client, object_server) -> Iterator[LiveStack]:
+    """The API and one Celery worker per ``HOSTS`` entry, each with its own data folder (nothing shared but Redis
+    and the object store), ``train_queue=gpu``, with the live stacks' short timings (``live_env``). The numba
+    kernels are compiled into their cache once first, so the three workers do not each compile them (raster_bwd,
+    never cached, compiles in every process: docs/DECISIONS.md, "Rendering engine")."""
+    subprocess.run([sys.executable, "-m", "cli.main", "warmup"], cwd=REPO, check=True, capture_output=True,
+                   timeout=300)
+    prefix = f"dptest-{uuid.uuid4().hex[:8]}-hosts"
+    stack = LiveStack(root=tmp_path, prefix=prefix, env={}, port=free_port())
+    for d in (stack.data_dir, stack.survey_root, stack.api_tmp):
+        d.mkdir()
+    # the API's own folder is live_env's data_dir; each worker gets another below
+    stack.env = {**live_env(stack, REDIS_URL), "DUALPHYS_TRAIN_QUEUE": "gpu", **object_server.env(HOSTS_BUCKET, prefix)}
+    try:
+        stack.start_api()
+        for name, queues in HOSTS.items():
+            start_host(stack, name, queues)
+        yield stack
+    finally:
+        stack.teardown()
+        delete_prefix(redis_client, prefix)
+
+
+def start_host(stack: LiveStack, name: str, queues: str) -> Proc:
+    folder = stack.root / f"{name}-data"
+    folder.mkdir(exist_ok=True)
+    env = {**stack.env, "DUALPHYS_DATA_DIR": str(folder)}
+    proc = stack._spawn(name, [sys.executable, "-m", "celery", "-A", "worker.app", "worker", "--pool=prefork",
+                               "--concurrency=1", "-Q", queues, "--loglevel=INFO", "--without-gossip",
+                               "--without-mingle", "--without-heartbeat", "-n", f"{name}@%h"], env)
+    wait_for(f"{name} to be ready", lambda: stack._ready(proc), timeout=60)
+    return proc

@@ -52,6 +52,27 @@ def test_compose_structure() -> None:
     assert "--schedule" in svc["beat"]["command"]
 
 
+def test_compose_hosts_profile() -> None:
+    """Profile ``hosts``: the object store and workers that share no volume with the API (issue 44)."""
+    doc = _load()
+    svc = doc["services"]
+    objects, worker = svc["objects"], svc["host-worker"]
+    assert objects["profiles"] == worker["profiles"] == ["hosts"]
+    assert "-s3" in objects["command"] and "-s3.port=8333" in objects["command"]
+    assert objects["configs"][0]["target"] == "/etc/seaweedfs/s3.json"
+    assert "accessKey" in doc["configs"][objects["configs"][0]["source"]]["content"]
+    assert "objects-data:/data" in objects["volumes"] and "objects-data" in doc["volumes"]
+    env = worker["environment"]
+    assert env["DUALPHYS_DATA_DIR"] == "/scratch" and worker["volumes"] == ["/scratch"]  # its own folder only
+    assert not any("jobs-data" in v for v in worker["volumes"])
+    assert env["DUALPHYS_OBJECT_STORE_URL"].endswith("http://objects:8333}")
+    assert worker["depends_on"]["objects"]["condition"] == "service_healthy"
+    assert worker["command"][:3] == ["celery", "-A", "worker.app"] and int(worker["deploy"]["replicas"]) >= 2
+    # the API and the other services read the same store settings (empty: the data volume is the store)
+    for name in ("api", "worker", "beat"):
+        assert svc[name]["environment"]["DUALPHYS_OBJECT_STORE_URL"] == "${DUALPHYS_OBJECT_STORE_URL:-}", name
+
+
 def test_compose_commands_name_real_modules() -> None:
     doc = _load()
     svc = doc["services"]

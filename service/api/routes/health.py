@@ -1,5 +1,5 @@
-"""/health (the process answers) and /ready (Redis reachable, data disk writable with room, and with
-``require_workers`` a live worker on every queue jobs need). No auth."""
+"""/health (the process answers) and /ready (Redis and the object store, if any, reachable; data disk writable
+with room; with ``require_workers``, a live worker on every queue jobs need). No auth."""
 
 from __future__ import annotations
 
@@ -44,10 +44,12 @@ def ready(services: ServicesDep) -> JSONResponse:
     except OSError:
         free, writable = 0, False
     per_queue, warnings = _workers(services) if redis_ok else ({}, [])
+    store_ok = services.jobs.store.reachable()
     body = ReadyOut(status="ready", redis=redis_ok, data_dir_writable=writable, disk_free_bytes=free,
                     min_free_bytes=s.min_free_bytes, workers=per_queue, workers_ok=redis_ok and not warnings,
-                    warnings=warnings)
+                    warnings=warnings, object_store=store_ok)
     problems = [msg for bad, msg in ((not redis_ok, "Redis is not reachable"),
+                                     (store_ok is False, "the object store is not reachable"),
                                      (not writable, "the data folder is not writable"),
                                      (free < s.min_free_bytes, "the data disk is nearly full"),
                                      (s.require_workers and bool(warnings), "; ".join(warnings))) if bad]

@@ -206,4 +206,6 @@ class ReadyOut(BaseModel):
                                                                       "from their Redis heartbeats")
     workers_ok: bool = Field(False, description="some worker consumes the cpu queue (stages) and the surveys queue "
                                                 "(scans), and the gpu queue when training is routed there")
+    object_store: bool | None = Field(None, description="the object store answers (null: none configured, the "
+                                                        "data folder is the store)")
     warnings: list[str] = Field(default_factory=list)
