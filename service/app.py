@@ -23,6 +23,7 @@ from .compose import compose
 from .core.broker import producer
 from .core.dispatch import TaskSender
 from .core.settings import Settings, load_settings
+from .jobs.store import StoreUnavailable
 from .jobs.watchdog import Watchdog, start_watchdog
 
 log = logging.getLogger(__name__)
@@ -63,6 +64,11 @@ def create_app(settings: Settings | None = None, celery_app: TaskSender | None =
     async def _redis_down(request: Request, exc: redis.RedisError) -> JSONResponse:
         log.error("Redis error on %s %s: %s", request.method, request.url.path, exc)
         return JSONResponse(error_body("redis_unavailable", "the coordinator (Redis) is unavailable"), 503)
+
+    @app.exception_handler(StoreUnavailable)
+    async def _store_down(request: Request, exc: StoreUnavailable) -> JSONResponse:
+        log.error("object store error on %s %s: %s", request.method, request.url.path, exc)
+        return JSONResponse(error_body("object_store_unavailable", "the object store is unavailable"), 503)
 
     @app.exception_handler(TimeoutError)
     async def _busy(request: Request, exc: TimeoutError) -> JSONResponse:

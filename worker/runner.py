@@ -35,7 +35,7 @@ from service.core.dispatch import DispatchError
 from service.jobs.manifest import TERMINAL_STATES, AttemptRecord, JobError, Manifest, WebhookDelivery, overall_progress
 from service.jobs.ops import pipeline_stages
 from service.jobs.redact import redact_paths
-from service.jobs.store import JobNotFound, JobStore
+from service.jobs.store import JobNotFound, JobStore, StoreUnavailable
 from service.webhooks.events import plan_event
 
 log = logging.getLogger(__name__)
@@ -44,6 +44,8 @@ MANIFEST_PROGRESS_EVERY_S = 2.0
 LOG_PROGRESS_EVERY_S = 5.0
 CACHE_PROGRESS_EVERY_S = 0.25
 CANCEL_CHECK_EVERY_S = 0.5
+STORE_RETRY_EVERY_S = 10.0  # a progress write that found the object store away: the next try (each try may block
+# for boto's retries, seconds with the training waiting)
 OUTAGE_BACKOFF_MAX_S = 5.0
 UNREACHABLE_MESSAGE = "the coordinator (Redis) is unreachable"
 
@@ -177,20 +179,25 @@ def _execute_locked(rt: Components, job_id: str, stage: str, run_id: str, lock: 
     return out
 
 
+# what a runner waits out instead of failing: Redis (the mutex, the cache, the broker) or the object store away
+OUTAGES = (RedisError, DispatchError, TimeoutError, StoreUnavailable)
+
+
 def when_redis_answers(rt: Components, what: str, fn: Callable[[], T]) -> T:
-    """``fn()``, tried again with backoff while Redis (the mutex, the cache, the broker) does not answer, up to
-    ``redis_outage_wait_s``; after that the error propagates and the watchdog (service.jobs.watchdog) finds the job
-    nobody runs once Redis is back. ``fn`` must be safe to repeat when it failed before writing anything."""
+    """``fn()``, tried again with backoff while Redis (the mutex, the cache, the broker) or the object store, if
+    any, does not answer, up to ``redis_outage_wait_s``; after that the error propagates and the watchdog
+    (service.jobs.watchdog) finds the job nobody runs once they are back. ``fn`` must be safe to repeat when it
+    failed before writing anything (a manifest write pushes the folder first, and a push repeats cheaply)."""
     deadline = time.monotonic() + rt.settings.redis_outage_wait_s
     delay = 0.5
     while True:
         try:
             return fn()
-        except (RedisError, DispatchError, TimeoutError) as e:
+        except OUTAGES as e:
             if time.monotonic() + delay > deadline:
                 log.error("gave up trying to %s: %s", what, e)
                 raise
-            log.warning("cannot %s yet (Redis unreachable: %s); trying again in %.1f s", what, e, delay)
+            log.warning("cannot %s yet (%s); trying again in %.1f s", what, e, delay)
             time.sleep(delay)
             delay = min(2 * delay, OUTAGE_BACKOFF_MAX_S)
 
@@ -201,7 +208,7 @@ def dispatch_next(rt: Components, job_id: str, run_id: str, stage: str) -> None:
     try:
         when_redis_answers(rt, f"queue {stage} of job {job_id}",
                            lambda: rt.jobs.dispatch(job_id, run_id, stage, fail_job=False))
-    except (RedisError, DispatchError, TimeoutError) as e:
+    except OUTAGES as e:
         log.error("job %s: %s not queued (%s); the watchdog re-queues it once Redis is back", job_id, stage, e)
 
 
@@ -280,6 +287,7 @@ class ProgressReporter:
         self.rt, self.job_id, self.run_id, self.stages, self.done = rt, job_id, run_id, stages, done
         self.value = floor
         self.unreachable = False
+        self.store_away = False
         self._cache_at = self._manifest_at = self._log_at = 0.0
 
     def __call__(self, stage: str, fraction: float, message: str) -> None:
@@ -297,13 +305,19 @@ class ProgressReporter:
         if now - self._log_at >= LOG_PROGRESS_EVERY_S:
             self._log_at = now
             log.info("job %s: %s %.1f%% %s", self.job_id, stage, self.value, message)
-        if now - self._manifest_at >= MANIFEST_PROGRESS_EVERY_S:
+        if now - self._manifest_at >= (STORE_RETRY_EVERY_S if self.store_away else MANIFEST_PROGRESS_EVERY_S):
             self._manifest_at = now
             try:
                 with self.rt.coord.manifest_mutex(self.job_id):
                     self._write(stage, message)
             except TimeoutError as e:  # Redis answers but someone holds the mutex: skip this write
                 log.warning("job %s: progress not written: %s", self.job_id, e)
+                return
+            except StoreUnavailable as e:  # the manifest lives in the object store: nothing to write it to; the
+                # stage goes on, the next write (and the checkpoints' push) catches up, its end waits for the store
+                if not self.store_away:
+                    log.warning("job %s: progress not written, %s; %s goes on", self.job_id, e, stage)
+                self.store_away = True
                 return
             except RedisError as e:
                 # Redis away: nobody can take the mutex (the API's writes need it too), so this runner writes its
@@ -314,9 +328,9 @@ class ProgressReporter:
                 self.unreachable = True
                 self._write(stage, f"{UNREACHABLE_MESSAGE}; {stage} goes on ({message})")
                 return
-            if self.unreachable:
-                log.info("job %s: the coordinator (Redis) answers again", self.job_id)
-            self.unreachable = False
+            if self.unreachable or self.store_away:
+                log.info("job %s: the coordinator and the store answer again", self.job_id)
+            self.unreachable = self.store_away = False
 
     def _write(self, stage: str, message: str) -> None:
         m = self.rt.store.read(self.job_id)

@@ -33,6 +33,11 @@ class JobNotFound(LookupError):
     pass
 
 
+class StoreUnavailable(OSError):
+    """The job store does not answer (an object store away: service.storage); the local folder never raises it.
+    A runner waits it out like a Redis outage (worker.runner); the API answers 503 ``object_store_unavailable``."""
+
+
 def new_job_id() -> str:
     """Time-ordered: 'j' + milliseconds (hex) + 40 random bits."""
     return f"j{int(time.time() * 1000):011x}{secrets.token_hex(5)}"

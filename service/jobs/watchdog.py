@@ -33,6 +33,7 @@ from service.core.inflight import scan
 
 from .manifest import TERMINAL_STATES
 from .ops import JobOps, pipeline_stages
+from .store import StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +107,7 @@ def start_watchdog(watchdog: Watchdog, every_s: float) -> threading.Event:
         while not stop.wait(every_s):
             try:
                 watchdog.run_pass()
-            except (redis.RedisError, TimeoutError) as e:  # Redis away: the next pass tries again
+            except (redis.RedisError, TimeoutError, StoreUnavailable) as e:  # Redis or the store away: next pass
                 log.debug("watchdog pass skipped: %s", e)
             except Exception:  # a bug here must not stop the watchdog for good
                 log.exception("watchdog pass failed")

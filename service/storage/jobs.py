@@ -12,17 +12,20 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from botocore.exceptions import BotoCoreError, ClientError
 from pydantic import ValidationError
 
 from pipeline.job.markers import atomic_write_text
 from service.jobs.manifest import Manifest
-from service.jobs.store import JOB_ID_RE, JobNotFound, JobStore
+from service.jobs.store import JOB_ID_RE, JobNotFound, JobStore, StoreUnavailable
 
 from .mirror import FolderMirror
 from .objects import ObjectStore
@@ -34,6 +37,21 @@ MANIFEST = "manifest.json"
 LOG = "log.txt"
 INPUTS = ("input/", "upload/")  # the upload and its unpacking: read by ingest only
 API_SKIPS = (*INPUTS, "scene/")  # read by stages only: never mirrored to the API
+
+
+F = TypeVar("F", bound=Callable)
+
+
+def answers(fn: F) -> F:
+    """The store's client errors (no connection, a timeout, a 5xx after boto's retries) as StoreUnavailable, so
+    callers tell "the store is away" from a bug without knowing boto (a missing object is not an error here)."""
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except (BotoCoreError, ClientError) as e:
+            raise StoreUnavailable(f"the object store does not answer: {e}") from e
+    return wrapped  # type: ignore[return-value]
 
 
 def served(rel: str) -> bool:
@@ -79,12 +97,14 @@ class SyncedJobStore(JobStore):
             return False
 
     # ---- the manifest
+    @answers
     def exists(self, job_id: str) -> bool:
         try:
             return self.objects.exists(self._name(job_id, MANIFEST))
         except JobNotFound:
             return False
 
+    @answers
     def read(self, job_id: str) -> Manifest:
         text = self.objects.get_bytes(self._name(job_id, MANIFEST))
         if text is None:
@@ -94,6 +114,7 @@ class SyncedJobStore(JobStore):
             atomic_write_text(self.manifest_path(job_id), text.decode("utf-8"))
         return m
 
+    @answers
     def write(self, m: Manifest) -> None:
         self._folder(m.id).push()
         m.touch()
@@ -101,6 +122,7 @@ class SyncedJobStore(JobStore):
         atomic_write_text(self.manifest_path(m.id), text)
         self.objects.put_bytes(self._name(m.id, MANIFEST), text.encode("utf-8"))
 
+    @answers
     def list(self) -> list[Manifest]:
         out = []
         for job_id in self.objects.folders(JOBS):
@@ -115,6 +137,7 @@ class SyncedJobStore(JobStore):
         out.sort(key=lambda m: (m.created_at, m.id), reverse=True)
         return out
 
+    @answers
     def remove(self, job_id: str) -> None:
         self.objects.delete_prefix(self._name(job_id))
         if self.job_dir(job_id).exists():
@@ -123,27 +146,32 @@ class SyncedJobStore(JobStore):
             self._mirrors.pop(job_id, None)
 
     # ---- the job's files
+    @answers
     def pull(self, job_id: str, stage: str | None = None) -> None:
         """Bring this host's job folder up to the store's state (a worker, before it runs ``stage``); the upload
         (``input/``, up to ``max_upload_bytes``) only for ingest, the one stage that reads it."""
         self._folder(job_id).pull(only=None if stage in (None, "ingest") else _not_input)
 
+    @answers
     def mirror(self, job_id: str) -> Path:
         """The job folder with what the API serves brought up to date (unchanged files are not fetched)."""
         self._folder(job_id).pull(only=served)
         return self.job_dir(job_id)
 
     # ---- the log: whoever appends fetches the store's copy first
+    @answers
     def append_log(self, job_id: str, line: str) -> None:
         folder = self._folder(job_id)
         folder.pull(only=_is_log)
         super().append_log(job_id, line)
         folder.push(only=_is_log)
 
+    @answers
     def read_log(self, job_id: str, offset: int, limit: int) -> tuple[str, int, int]:
         self._folder(job_id).pull(only=_is_log)
         return super().read_log(job_id, offset, limit)
 
+    @answers
     def last_checkpoint_iteration(self, job_id: str, tail_bytes: int = 256 << 10) -> int | None:
         self._folder(job_id).pull(only=_is_log)
         return super().last_checkpoint_iteration(job_id, tail_bytes)

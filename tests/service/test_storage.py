@@ -3,18 +3,23 @@ push moves, and the job store whose manifests and files live in the store."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import socket
+import threading
+import time
 import uuid
 
 import pytest
-from svc_helpers import make_settings
+from svc_helpers import free_port, make_settings
 
-from service.compose import job_store
+from service.compose import compose, job_store
 from service.jobs.manifest import Manifest
-from service.jobs.store import JobNotFound, JobStore, new_job_id
+from service.jobs.store import JobNotFound, JobStore, StoreUnavailable, new_job_id
 from service.storage.jobs import SyncedJobStore
 from service.storage.mirror import FolderMirror, travels
 from service.storage.objects import ObjectStore
+from worker.runner import ProgressReporter, when_redis_answers
 
 BUCKET = "dualphys-unit"
 
@@ -145,3 +150,109 @@ def test_ready_reports_the_object_store(object_server, tmp_path, unit_prefix) ->
         assert r.json()["error"]["code"] == "not_ready" and "object store" in r.json()["error"]["message"]
     with TestClient(create_app(make_settings(tmp_path / "none", unit_prefix))) as c:
         assert c.get("/ready").json()["object_store"] is None
+
+
+class Gate:
+    """A TCP forwarder on a free local port in front of the object server, to cut the store off mid-job and bring
+    it back (``down``: the listener and every open connection closed, so clients see refused connections)."""
+
+    def __init__(self, target: str):
+        host, port = target.rsplit("//", 1)[1].split(":")
+        self.target = (host, int(port))
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self._conns: list[socket.socket] = []
+        self._listener: socket.socket | None = None
+
+    def up(self) -> None:
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", self.port))
+        s.listen(16)
+        self._listener = s
+        threading.Thread(target=self._accept, args=(s,), daemon=True).start()
+
+    def down(self) -> None:
+        if self._listener is not None:
+            with contextlib.suppress(OSError):
+                self._listener.shutdown(socket.SHUT_RDWR)  # wakes the accept (a bare close leaves it listening)
+            self._listener.close()
+            self._listener = None
+        for c in self._conns:
+            with contextlib.suppress(OSError):
+                c.shutdown(socket.SHUT_RDWR)
+            c.close()
+        self._conns.clear()
+
+    def _accept(self, listener: socket.socket) -> None:
+        while True:
+            try:
+                client, _ = listener.accept()
+            except OSError:
+                return  # closed: down()
+            server = socket.create_connection(self.target)
+            self._conns += [client, server]
+            for a, b in ((client, server), (server, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pump(a: socket.socket, b: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while data := a.recv(65536):
+                b.sendall(data)
+        with contextlib.suppress(OSError):
+            b.shutdown(socket.SHUT_WR)
+
+
+def test_an_object_store_outage_is_waited_out_not_a_failed_stage(object_server, tmp_path, unit_prefix) -> None:
+    """The store away mid-stage: a progress write is skipped (the stage goes on), the stage's end waits for the store
+    and lands once it is back, a reader gets StoreUnavailable (the API's 503 object_store_unavailable)."""
+    from object_server import ACCESS_KEY, SECRET_KEY
+
+    gate = Gate(object_server.url)
+    gate.up()
+    prefix = f"outage-{uuid.uuid4().hex[:8]}"
+    settings = make_settings(tmp_path / "data", f"{unit_prefix}-{prefix}", object_store_url=gate.url,
+                             object_store_bucket=BUCKET, object_store_prefix=prefix,
+                             object_store_access_key=ACCESS_KEY, object_store_secret_key=SECRET_KEY,
+                             redis_outage_wait_s=60)
+    rt = compose(settings, None)
+    try:
+        rt.store.ensure()
+        jid = new_job_id()
+        rt.store.job_dir(jid).mkdir(parents=True)
+        m = _manifest(jid)
+        m.state = "running"
+        rt.store.write(m)
+        reporter = ProgressReporter(rt, jid, m.run_id, ("ingest", "train"), {"ingest"}, floor=0.0)
+        reporter._manifest_at = 0.0
+        reporter("train", 0.5, "iteration 5/10")  # written through the store
+        assert rt.store.read(jid).message == "iteration 5/10"
+
+        gate.down()
+        with pytest.raises(StoreUnavailable):
+            rt.store.read(jid)
+        reporter._manifest_at = 0.0
+        reporter("train", 0.6, "iteration 6/10")  # skipped, not raised: the stage goes on
+        assert reporter.store_away
+
+        # the stage's end: waits (with backoff) while the store is away, lands once it is back
+        def end() -> str:
+            got = rt.store.read(jid)
+            got.message = "train done"
+            rt.store.write(got)
+            return "recorded"
+
+        threading.Timer(3.0, gate.up).start()
+        t0 = time.monotonic()
+        assert when_redis_answers(rt, "record the end", end) == "recorded"
+        assert time.monotonic() - t0 >= 2.5  # it did wait for the store (the gate opened after 3 s)
+        assert Manifest.model_validate_json(ObjectStore(object_server.url, BUCKET, prefix, ACCESS_KEY, SECRET_KEY)
+                                            .get_bytes(f"jobs/{jid}/manifest.json")).message == "train done"
+        reporter._manifest_at = 0.0
+        reporter("train", 0.7, "iteration 7/10")
+        assert not reporter.store_away and rt.store.read(jid).message == "iteration 7/10"
+    finally:
+        gate.down()
+        ObjectStore(object_server.url, BUCKET, prefix, ACCESS_KEY, SECRET_KEY).delete_prefix("")
+        rt.close()
