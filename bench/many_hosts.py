@@ -34,6 +34,8 @@ import uuid
 import zipfile
 from pathlib import Path
 
+from pipeline.job.layout import JobLayout
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 REPO = Path(__file__).resolve().parents[1]
@@ -41,6 +43,7 @@ sys.path.insert(0, str(REPO / "tests" / "service"))  # the tests' SeaweedFS laun
 
 REDIS_URL = "redis://127.0.0.1:6379/15"
 KEY = "bench-key-0123456789abcdef"
+PLY = JobLayout(Path("job")).relative(JobLayout(Path("job")).ply)
 STAGES = ("ingest", "sfm", "classify", "train", "evaluate", "restore", "survey", "export")
 
 
@@ -153,7 +156,7 @@ def run_job(stack: Stack, archive: bytes) -> dict:
         rows[name] = {"seconds": s["seconds"],
                       "handoff_s": None if prev_end is None else round(s["started_at"] - prev_end, 3)}
         prev_end = s["finished_at"]
-    ply = c.get(f"/v1/jobs/{jid}/artifacts/output/reconstruction.ply")
+    ply = c.get(f"/v1/jobs/{jid}/artifacts/{PLY}")
     return {"job": jid, "wall_s": round(wall, 1), "stages": rows, "ply_bytes": len(ply.content)}
 
 

@@ -23,6 +23,7 @@ from typing import TypeVar
 from botocore.exceptions import BotoCoreError, ClientError
 from pydantic import ValidationError
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.markers import atomic_write_text
 from service.jobs.manifest import Manifest
 from service.jobs.store import JOB_ID_RE, JobNotFound, JobStore, StoreUnavailable
@@ -33,10 +34,11 @@ from .objects import ObjectStore
 log = logging.getLogger(__name__)
 
 JOBS = "jobs/"
-MANIFEST = "manifest.json"
-LOG = "log.txt"
-INPUTS = ("input/", "upload/")  # the upload and its unpacking: read by ingest only
-API_SKIPS = (*INPUTS, "scene/")  # read by stages only: never mirrored to the API
+_JOB = JobLayout(Path("job"))  # the job folder's names, as JobLayout spells them
+MANIFEST = _JOB.relative(_JOB.manifest)
+LOG = _JOB.relative(_JOB.log)
+INPUTS = tuple(_JOB.relative(p) + "/" for p in (_JOB.input, _JOB.unpacked))  # the upload, unpacked: ingest's only
+API_SKIPS = (*INPUTS, _JOB.relative(_JOB.scene) + "/")  # read by stages only: never mirrored to the API
 
 
 F = TypeVar("F", bound=Callable)

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from pipeline.job.layout import JobLayout
 from pipeline.job.markers import atomic_write_text
 
 from .objects import ObjectStore
@@ -30,7 +31,8 @@ from .objects import ObjectStore
 log = logging.getLogger(__name__)
 
 INDEX_NAME = ".sync.json"
-MARKERS_DIR = ".stages"
+_JOB = JobLayout(Path("job"))
+MARKERS_DIR = _JOB.relative(_JOB.markers)  # the completion markers' folder
 
 
 def travels(rel: str) -> bool:
