@@ -200,6 +200,7 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
         t = np.empty((9, 3))  # per channel: A, B, x, oA, oB, e^(-oB), e = x - B - A·P, the value, 1 - e^(-oB)
         G = np.empty((3, 3))
         M = np.empty((3, 3))
+        kv = np.empty(3)  # a row of I − G·diag(A)
         for j in range(W):
             if not surface[i, j]:
                 for c in range(3):
@@ -212,8 +213,8 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
             for c in range(3):
                 t[3, c], t[4, c] = _optical_depths(k_A[ia, ja, c], k_B[ib, jb, c], rr)
                 t[0, c] = np.exp(-t[3, c])
-                t[5, c] = np.exp(-t[4, c])
-                t[8, c] = -np.expm1(-t[4, c])  # once: the veil and its error both need it
+                t[8, c] = -np.expm1(-t[4, c])  # 1 − e^(-oB) once: the veil and its error both need it
+                t[5, c] = 1.0 - t[8, c]  # and e^(-oB) from it (an exp fewer; equal to within 1 ulp)
                 t[1, c] = B_inf[c] * t[8, c]
                 x = scale * np.float64(img[i, j, c])
                 t[2, c] = _srgb_to_linear(x) if linear else x
@@ -237,15 +238,20 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
                 if has_prior:
                     # the photo's noise through the gains, and what the model lacks through I − G·A
                     noise = G[c, 0] ** 2 * noise2[0] + G[c, 1] ** 2 * noise2[1] + G[c, 2] ** 2 * noise2[2]
+                    for a in range(3):
+                        kv[a] = (1.0 if a == c else 0.0) - G[c, a] * t[0, a]
                     model2 = 0.0
                     for a in range(3):
-                        ka = (1.0 if a == c else 0.0) - G[c, a] * t[0, a]
                         for b in range(3):
-                            model2 += ka * dcov[a, b] * ((1.0 if b == c else 0.0) - G[c, b] * t[0, b])
+                            model2 += kv[a] * dcov[a, b] * kv[b]
                     model2 = max(model2, 0.0)
                     # where the photo disagrees with the model beyond its noise, the model's depth, water or J is
-                    # wrong there, and so is what the restoration took from it
-                    model2 += max(np.float64(misfit[i * full_M, j * full_M, c]) - noise2[c], 0.0) / (Ae * Ae)
+                    # wrong there, and so is what the restoration took from it (a NaN misfit counts as 0; ±inf
+                    # needs no care: the error is capped at 1 below)
+                    mf = np.float64(misfit[i * full_M, j * full_M, c])
+                    if mf != mf:
+                        mf = 0.0
+                    model2 += max(mf - noise2[c], 0.0) / (Ae * Ae)
                 else:
                     noise = noise2[c] / (Ae * Ae)
                     model2 = 0.0

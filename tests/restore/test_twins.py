@@ -106,3 +106,25 @@ def test_calibration_sums_match_reference():
                 for a, b in zip(got[:3], ref[:3]):
                     assert np.abs(a - b).max() < 1e-9 * max(1.0, np.abs(b).max())
                 assert np.abs(got[1]).max() > 1e-3  # the lag products are not all zero
+
+
+def test_dewater_reads_a_nan_misfit_as_zero():
+    """The kernel reads NaN in the misfit as 0 (it replaced a full-frame nan_to_num); +inf caps the error at 1."""
+    rng = np.random.default_rng(8)
+    img = rng.random((9, 11, 3)).astype(np.float32)
+    r = rng.uniform(0.5, 8, (9, 11)).astype(np.float32)
+    surf = np.ones((9, 11), bool)
+    prior = rng.random((9, 11, 3)).astype(np.float32)
+    mis = rng.uniform(0, 0.02, (9, 11, 3)).astype(np.float32)
+    kw = dict(prior=prior, lam2=np.array([0.05, 0.1, 0.2]), noise2=np.full(3, 1e-4), detail2=np.full(3, 1e-3))
+    B, kA, kB = np.array([0.1, 0.2, 0.3]), np.array([0.3, 0.1, 0.05]), np.array([0.2, 0.1, 0.1])
+    bad, zero = mis.copy(), mis.copy()
+    bad[2, 3, 1], zero[2, 3, 1] = np.nan, 0.0
+    _, c_bad, _ = dewater(img, r, surf, kA, kB, B, misfit=bad, **kw)
+    _, c_zero, _ = dewater(img, r, surf, kA, kB, B, misfit=zero, **kw)
+    _, c_mis, _ = dewater(img, r, surf, kA, kB, B, misfit=mis, **kw)
+    assert np.isfinite(c_bad).all() and (c_bad == c_zero).all() and c_mis[2, 3] < c_zero[2, 3]
+    bad[2, 3, 1] = np.inf
+    _, c_inf, _ = dewater(img, r, surf, kA, kB, B, misfit=bad, **kw)
+    others = np.arange(99) != 2 * 11 + 3
+    assert 0 < c_inf[2, 3] < 0.1 and (c_inf.ravel()[others] == c_mis.ravel()[others]).all()
