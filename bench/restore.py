@@ -133,8 +133,8 @@ def compare(other: str, width: int, height: int, rounds: int) -> dict:
         return {"frame": f"{width}x{height}", "other": other, "other_s": [x["seconds"] for x in runs["other"]],
                 "this_s": [x["seconds"] for x in runs["this"]],
                 "ratio": [round(a["seconds"] / b["seconds"], 2) for a, b in zip(runs["other"], runs["this"])],
-                "other_rss_mb": max(x["peak_rss_mb"] for x in runs["other"]),
-                "this_rss_mb": max(x["peak_rss_mb"] for x in runs["this"]),
+                "other_rss_mb": [x["peak_rss_mb"] for x in runs["other"]],
+                "this_rss_mb": [x["peak_rss_mb"] for x in runs["this"]],
                 "diff_of_255": diff, "load_after": round(os.getloadavg()[0], 2)}
 
 

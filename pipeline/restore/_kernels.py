@@ -456,3 +456,25 @@ def calibration_sums(img, scale, r, surface, k_A, k_B, B_inf, linear, prior, st)
             total[q] += acc[ri, q]
     return (total[:3].copy(), total[3:12].copy().reshape(3, 3), total[12:21].copy().reshape(3, 3), int(total[21]),
             int(total[22]))
+
+
+@njit(parallel=True, cache=True)
+def surface_range(z, xn, yn, inside, vals):  # pragma: no cover - numba
+    """One pass over a band's rows (twin: ``pipeline.restore.frame.surface_range_reference``): z [n, W] float32 the
+    filtered depth, xn, yn [n, W] float32 the rays, inside [n, W] bool, vals [n, W, C ≥ 3] float32 the sampled maps
+    (alpha in channel 1, the reach weight in 2). Returns (range r = z·√(1 + xn² + yn²) [n, W] float32 (float32
+    arithmetic, as numpy's), surface [n, W] bool = inside & alpha ≥ 0.5 & z > 0, near [n, W] float32 = the reach
+    weight off the surface where z > 0, else 0)."""
+    n, W = z.shape
+    r = np.empty((n, W), np.float32)
+    surface = np.empty((n, W), np.bool_)
+    near = np.empty((n, W), np.float32)
+    one = np.float32(1.0)
+    for i in prange(n):
+        for j in range(W):
+            zz, x, y = z[i, j], xn[i, j], yn[i, j]
+            s = inside[i, j] and vals[i, j, 1] >= 0.5 and zz > 0
+            surface[i, j] = s
+            r[i, j] = zz * np.sqrt(one + x * x + y * y)
+            near[i, j] = np.float32(0.0) if (s or zz <= 0) else vals[i, j, 2]
+    return r, surface, near

@@ -25,7 +25,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from pipeline.medium.fall_off import log_fall_off_at
-from pipeline.restore._kernels import calibration_sums, luminance
+from pipeline.restore._kernels import calibration_sums, luminance, surface_range
 from pipeline.restore.dewater import (
     _k,
     detail_covariance,
@@ -237,9 +237,7 @@ class FrameRestorer:
             z = fast_guided_filter(luminance(np.ascontiguousarray(rows), scale), z, self.radius, self.opt.eps,
                                    self.s)
         c = slice(y0 - e0, y1 - e0)
-        xc, yc, z = xn[c], yn[c], z[c]
-        surface = inside[c] & (vals[c, :, 1] >= 0.5) & (z > 0)
-        r = z * np.sqrt(1.0 + xc * xc + yc * yc)
+        r, surface, near = surface_range(np.ascontiguousarray(z[c], np.float32), xn[c], yn[c], inside[c], vals[c])
         m = self.view.medium
         k_A, k_B = m.k_A, m.k_B
         at = 3
@@ -248,7 +246,6 @@ class FrameRestorer:
             prior, at = vals[c, :, 3:6], 6
         if self.kmaps is not None:
             k_A, k_B = vals[c, :, at:at + 3], vals[c, :, at + 3:at + 6]
-        near = np.where(surface | (z <= 0), 0.0, vals[c, :, 2]).astype(np.float32)
         return scale, r, surface, k_A, k_B, prior, near
 
     def band(self, rows: np.ndarray, e0: int, y0: int, y1: int, out_max: int = 255
@@ -382,6 +379,17 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
     logger.info("restored %s: %.2f s, %d surface pixels, %d clipped", src.name, res.seconds, res.surface_pixels,
                 res.clipped)
     return res
+
+
+def surface_range_reference(z: np.ndarray, xn: np.ndarray, yn: np.ndarray, inside: np.ndarray,
+                            vals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slow twin of :func:`pipeline.restore._kernels.surface_range` (the numpy lines it replaced): (range r,
+    surface, the reach weight off the surface) of a band, [n, W] each."""
+    z, xn, yn = (np.asarray(a, np.float32) for a in (z, xn, yn))
+    surface = inside & (vals[..., 1] >= 0.5) & (z > 0)
+    r = z * np.sqrt(1.0 + xn * xn + yn * yn)
+    near = np.where(surface | (z <= 0), 0.0, vals[..., 2]).astype(np.float32)
+    return r, surface, near
 
 
 def calibration_sums_reference(x: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray, k_B: np.ndarray,

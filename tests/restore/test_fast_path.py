@@ -1,5 +1,6 @@
 """The whole frame's fast path against the same frame restored with the slow twins swapped in for the hot ops
-(one sampling pass over every map, the calibration's fused sums, the misfit and the dewater kernels): the
+(one sampling pass over every map, the range and surface pass, the calibration's fused sums, the misfit and the
+dewater kernels): the
 restored photo and the confidence map agree within 1/255 (issue 43, item 3: faster, not different)."""
 
 import numpy as np
@@ -54,6 +55,7 @@ def test_fast_path_equals_the_twins_within_one_level(scene, monkeypatch):
     with monkeypatch.context() as m:
         m.setattr(frame, "sample_maps", sample_maps_reference)
         m.setattr(frame, "calibration_sums", _calibration_twin)
+        m.setattr(frame, "surface_range", frame.surface_range_reference)
         m.setattr(frame, "local_misfit", _misfit_twin)
         m.setattr(frame, "dewater", _dewater_twin)
         slow = frame.restore_array(photo, fr.lens, view, opt)

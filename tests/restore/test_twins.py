@@ -128,3 +128,20 @@ def test_dewater_reads_a_nan_misfit_as_zero():
     _, c_inf, _ = dewater(img, r, surf, kA, kB, B, misfit=bad, **kw)
     others = np.arange(99) != 2 * 11 + 3
     assert 0 < c_inf[2, 3] < 0.1 and (c_inf.ravel()[others] == c_mis.ravel()[others]).all()
+
+
+def test_surface_range_matches_reference():
+    from pipeline.restore._kernels import surface_range
+    from pipeline.restore.frame import surface_range_reference
+
+    rng = np.random.default_rng(9)
+    z = rng.uniform(-1, 5, (17, 23)).astype(np.float32)
+    z[3, 4] = np.nan
+    xn, yn = (rng.uniform(-0.7, 0.7, (17, 23)).astype(np.float32) for _ in range(2))
+    inside = rng.random((17, 23)) > 0.1
+    vals = rng.random((17, 23, 6)).astype(np.float32)
+    got, ref = surface_range(z, xn, yn, inside, vals), surface_range_reference(z, xn, yn, inside, vals)
+    assert got[1].any() and (~got[1]).any() and (got[2] > 0).any()
+    for a, b in zip(got, ref):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)  # the same float32 arithmetic, NaN where numpy has it
