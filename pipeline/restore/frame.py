@@ -243,7 +243,7 @@ class FrameRestorer:
         at = 3
         prior = None
         if self.jmap is not None:
-            prior, at = vals[c, :, 3:6], 6
+            prior, at = np.ascontiguousarray(vals[c, :, 3:6]), 6  # copied once here, not in each kernel's call
         if self.kmaps is not None:
             k_A, k_B = vals[c, :, at:at + 3], vals[c, :, at + 3:at + 6]
         return scale, r, surface, k_A, k_B, prior, near
