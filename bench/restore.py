@@ -7,6 +7,7 @@ reference guided filter, reference dewater) on a small crop against the fast pat
 
     python bench/restore.py [--width 6000 --height 4500] [--json]
     python bench/restore.py --filter    # the guided filter's radius / eps sweep (docs/DECISIONS.md)
+    python bench/restore.py --compare DIR [--rounds 3]   # alternating rounds against the code in DIR (ratio)
     python bench/restore.py --cold [--width 640 --height 480 --photos 4 --bits 8]
         # first restores on an empty numba cache, and after pipeline.restore.warmup in an earlier process
 """
@@ -69,6 +70,72 @@ def frame_bench(width: int, height: int) -> dict:
                 "rss_before_mb": round(rss0), "surface_fraction": round(res.surface_pixels / (width * height), 3),
                 "clipped": res.clipped, "output_mb": round(res.paths["J"].stat().st_size / 2**20, 1),
                 "prior_weight": res.lam2}
+
+
+def _frame_child(src: str, out: str, width: int, height: int, dump: bool) -> dict:
+    """In a child process (whose PYTHONPATH picks the code): warm the kernels, restore ``src`` into ``out``, time
+    it; with ``dump``, also save the restored photo and confidence of the same frame restored in memory
+    (``J.npy``, ``confidence.npy``). The child of :func:`compare`."""
+    import pipeline
+    from pipeline.restore.frame import RestoreOptions, restore_array, restore_file
+    from pipeline.restore.synthetic import SynthFrame
+
+    fr = SynthFrame(width, height, factor=width // 400, k1=-0.1)
+    view = fr.render(prior=True)
+    _warm(out)
+    t = time.perf_counter()
+    restore_file(Path(src), fr.lens, view, Path(out), RestoreOptions())
+    res = {"seconds": round(time.perf_counter() - t, 3), "peak_rss_mb": round(_rss_mb()),
+           "code": str(Path(pipeline.__file__).parent.parent)}
+    if dump:  # the pixels before encoding (a JPEG's quantisation spreads a 1/255 change over its 8x8 block)
+        import OpenImageIO as oiio
+
+        photo = oiio.ImageBuf(src).get_pixels(oiio.UINT8)[..., :3]
+        arr = restore_array(photo, fr.lens, view)
+        np.save(Path(out) / "J.npy", arr.J)
+        np.save(Path(out) / "confidence.npy", arr.confidence)
+    return res
+
+
+def compare(other: str, width: int, height: int, rounds: int) -> dict:
+    """Alternating rounds of the code in ``other`` (a tree holding ``pipeline/``, e.g. main's) and this tree on
+    one generated frame, each restore in a fresh process; the ratio per round (other / this: > 1 is faster here)
+    and how far the two trees' restored photo and confidence map differ (max |Δ| of 255)."""
+    import OpenImageIO as oiio
+
+    here = str(Path(__file__).resolve().parent.parent)
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "frame.jpg"
+        p = mp.get_context("spawn").Process(target=_write_frame, args=(str(src), width, height))
+        p.start()
+        p.join()
+        runs: dict[str, list] = {"other": [], "this": []}
+        for k in range(rounds):
+            for name, tree in (("other", other), ("this", here)):
+                out = Path(tmp) / f"{name}{k}"
+                env = dict(os.environ, PYTHONPATH=tree)
+                r = subprocess.run([sys.executable, __file__, "--frame-child", str(src), str(out), str(width),
+                                    str(height), str(int(k == 0))], env=env, check=True, capture_output=True,
+                                   text=True)
+                runs[name].append(json.loads(r.stdout.strip().splitlines()[-1]))
+        diff = {}
+        for what, name in (("J", "J.npy"), ("confidence", "confidence.npy"), ("J_jpeg", "frame.jpg"),
+                           ("confidence_png", "frame_confidence.png")):
+            if name.endswith(".npy"):
+                a, b = (np.load(Path(tmp) / f"{t}0" / name).astype(np.float64) for t in ("other", "this"))
+                if what == "confidence":
+                    a, b = a * 255, b * 255
+            else:
+                a, b = (oiio.ImageBuf(str(Path(tmp) / f"{t}0" / name)).get_pixels(oiio.UINT8).astype(np.float64)
+                        for t in ("other", "this"))
+            d = np.abs(a - b)
+            diff[what] = {"max": round(float(d.max()), 3), "share_over_1": float((d > 1).mean())}
+        return {"frame": f"{width}x{height}", "other": other, "other_s": [x["seconds"] for x in runs["other"]],
+                "this_s": [x["seconds"] for x in runs["this"]],
+                "ratio": [round(a["seconds"] / b["seconds"], 2) for a, b in zip(runs["other"], runs["this"])],
+                "other_rss_mb": [x["peak_rss_mb"] for x in runs["other"]],
+                "this_rss_mb": [x["peak_rss_mb"] for x in runs["this"]],
+                "diff_of_255": diff, "load_after": round(os.getloadavg()[0], 2)}
 
 
 def _warm(tmp: str) -> None:
@@ -227,10 +294,21 @@ def main() -> None:
     ap.add_argument("--cold", action="store_true")
     ap.add_argument("--photos", type=int, default=4)
     ap.add_argument("--bits", type=int, default=8, choices=(8, 16))
+    ap.add_argument("--compare", metavar="DIR", help="alternate rounds against the code in DIR (holds pipeline/)")
+    ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--frame-child", nargs=5, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
         print(json.dumps(_child(*a.child)))
+        return
+    if a.frame_child:
+        src, out, w, h, dump = a.frame_child
+        print(json.dumps(_frame_child(src, out, int(w), int(h), dump == "1")))
+        return
+    if a.compare:
+        print(json.dumps(compare(a.compare, a.width or 6000, a.height or 4500, a.rounds), indent=None if a.json
+                         else 2))
         return
     if a.cold:
         res = cold_start(a.width or 640, a.height or 480, a.photos, a.bits)

@@ -197,9 +197,10 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
     full_B = 1 if k_B.shape[0] > 1 else 0
     full_M = 1 if misfit.shape[0] > 1 else 0
     for i in prange(n):
-        t = np.empty((8, 3))  # per channel: A, B, x, oA, oB, e^(-oB), e = x - B - A·P, the value
+        t = np.empty((9, 3))  # per channel: A, B, x, oA, oB, e^(-oB), e = x - B - A·P, the value, 1 - e^(-oB)
         G = np.empty((3, 3))
         M = np.empty((3, 3))
+        kv = np.empty(3)  # a row of I − G·diag(A)
         for j in range(W):
             if not surface[i, j]:
                 for c in range(3):
@@ -212,8 +213,9 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
             for c in range(3):
                 t[3, c], t[4, c] = _optical_depths(k_A[ia, ja, c], k_B[ib, jb, c], rr)
                 t[0, c] = np.exp(-t[3, c])
-                t[5, c] = np.exp(-t[4, c])
-                t[1, c] = B_inf[c] * -np.expm1(-t[4, c])
+                t[8, c] = -np.expm1(-t[4, c])  # 1 − e^(-oB) once: the veil and its error both need it
+                t[5, c] = 1.0 - t[8, c]  # and e^(-oB) from it (an exp fewer; equal to within 1 ulp)
+                t[1, c] = B_inf[c] * t[8, c]
                 x = scale * np.float64(img[i, j, c])
                 t[2, c] = _srgb_to_linear(x) if linear else x
             if has_prior:
@@ -236,15 +238,20 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
                 if has_prior:
                     # the photo's noise through the gains, and what the model lacks through I − G·A
                     noise = G[c, 0] ** 2 * noise2[0] + G[c, 1] ** 2 * noise2[1] + G[c, 2] ** 2 * noise2[2]
+                    for a in range(3):
+                        kv[a] = (1.0 if a == c else 0.0) - G[c, a] * t[0, a]
                     model2 = 0.0
                     for a in range(3):
-                        ka = (1.0 if a == c else 0.0) - G[c, a] * t[0, a]
                         for b in range(3):
-                            model2 += ka * dcov[a, b] * ((1.0 if b == c else 0.0) - G[c, b] * t[0, b])
+                            model2 += kv[a] * dcov[a, b] * kv[b]
                     model2 = max(model2, 0.0)
                     # where the photo disagrees with the model beyond its noise, the model's depth, water or J is
-                    # wrong there, and so is what the restoration took from it
-                    model2 += max(np.float64(misfit[i * full_M, j * full_M, c]) - noise2[c], 0.0) / (Ae * Ae)
+                    # wrong there, and so is what the restoration took from it (a NaN misfit counts as 0; ±inf
+                    # needs no care: the error is capped at 1 below)
+                    mf = np.float64(misfit[i * full_M, j * full_M, c])
+                    if mf != mf:
+                        mf = 0.0
+                    model2 += max(mf - noise2[c], 0.0) / (Ae * Ae)
                 else:
                     noise = noise2[c] / (Ae * Ae)
                     model2 = 0.0
@@ -254,7 +261,7 @@ def dewater(img, scale, r, surface, k_A, k_B, B_inf, max_gain, linear, J, out_ma
                 # expected error of v (the twin: pipeline.restore.dewater.expected_error)
                 dA = v * oA * sigma[0, c]
                 dB = ((B_inf[c] * oB * t[5, c] * sigma[1, c]) ** 2
-                      + (B_inf[c] * (1.0 - B_inf[c]) * -np.expm1(-oB) * sigma[2, c]) ** 2)
+                      + (B_inf[c] * (1.0 - B_inf[c]) * t[8, c] * sigma[2, c]) ** 2)
                 e = np.sqrt(dA * dA + dB / (Ae * Ae) + noise + model2)
                 if linear:
                     s0 = _linear_to_srgb(v)
@@ -396,3 +403,78 @@ def upsample_apply(mab, I, s, off):  # pragma: no cover - numba
                 (mab[1, y1, x0] * (1 - u) + mab[1, y1, x1] * u) * t
             out[i, j] = a * I[i, j] + b + off
     return out
+
+
+@njit(parallel=True, cache=True)
+def calibration_sums(img, scale, r, surface, k_A, k_B, B_inf, linear, prior, st):  # pragma: no cover - numba
+    """The sums :meth:`pipeline.restore.frame.FrameRestorer.calibrate` measures the prior's weight from, over
+    every ``st``-th row of a band (twin: ``pipeline.restore.frame.calibration_sums_reference``): the residual
+    e = x − (P·A + B) of surface pixels, x = ``scale``·img (sRGB decoded after clipping to [0, 1] when
+    ``linear``). img [n, W, 3] any dtype, r [n, W] float32, surface [n, W] bool, k_A, k_B [n, W, 3] or [1, 1, 3]
+    float32, B_inf [3], prior [n, W, 3] float32. Returns (Σ e_c² [3], Σ e_c,x·e_k,x+1 over horizontal surface pairs
+    [3, 3], Σ A_c·A_k [3, 3], surface count, pair count), float64, summed per row then over rows in order (the
+    same bits on any thread count)."""
+    n, W, _ = img.shape
+    rows = (n + st - 1) // st
+    acc = np.zeros((rows, 23))  # per sampled row: sq[3], lag[9], aa[9], n_sq, n_lag
+    full_A = 1 if k_A.shape[0] > 1 else 0
+    full_B = 1 if k_B.shape[0] > 1 else 0
+    for ri in prange(rows):
+        i = ri * st
+        e = np.empty(3)
+        A = np.empty(3)
+        prev = np.empty(3)
+        have_prev = False
+        for j in range(W):
+            if not surface[i, j]:
+                have_prev = False
+                continue
+            rr = np.float64(r[i, j])
+            for c in range(3):
+                oA = min(max(np.float64(k_A[i * full_A, j * full_A, c]) * rr, 0.0), 80.0)
+                oB = min(max(np.float64(k_B[i * full_B, j * full_B, c]) * rr, 0.0), 80.0)
+                A[c] = np.exp(-oA)
+                x = np.float64(img[i, j, c]) * scale
+                if linear:
+                    x = _srgb_to_linear(min(max(x, 0.0), 1.0))
+                e[c] = x - (np.float64(prior[i, j, c]) * A[c] + B_inf[c] * -np.expm1(-oB))
+            for c in range(3):
+                acc[ri, c] += e[c] * e[c]
+                for k in range(3):
+                    acc[ri, 12 + 3 * c + k] += A[c] * A[k]
+                    if have_prev:
+                        acc[ri, 3 + 3 * c + k] += prev[c] * e[k]
+            acc[ri, 21] += 1.0
+            if have_prev:
+                acc[ri, 22] += 1.0
+            for c in range(3):
+                prev[c] = e[c]
+            have_prev = True
+    total = np.zeros(23)
+    for ri in range(rows):
+        for q in range(23):
+            total[q] += acc[ri, q]
+    return (total[:3].copy(), total[3:12].copy().reshape(3, 3), total[12:21].copy().reshape(3, 3), int(total[21]),
+            int(total[22]))
+
+
+@njit(parallel=True, cache=True)
+def surface_range(z, xn, yn, inside, vals):  # pragma: no cover - numba
+    """One pass over a band's rows (twin: ``pipeline.restore.frame.surface_range_reference``): z [n, W] float32 the
+    filtered depth, xn, yn [n, W] float32 the rays, inside [n, W] bool, vals [n, W, C ≥ 3] float32 the sampled maps
+    (alpha in channel 1, the reach weight in 2). Returns (range r = z·√(1 + xn² + yn²) [n, W] float32 (float32
+    arithmetic, as numpy's), surface [n, W] bool = inside & alpha ≥ 0.5 & z > 0, near [n, W] float32 = the reach
+    weight off the surface where z > 0, else 0)."""
+    n, W = z.shape
+    r = np.empty((n, W), np.float32)
+    surface = np.empty((n, W), np.bool_)
+    near = np.empty((n, W), np.float32)
+    one = np.float32(1.0)
+    for i in prange(n):
+        for j in range(W):
+            zz, x, y = z[i, j], xn[i, j], yn[i, j]
+            s = inside[i, j] and vals[i, j, 1] >= 0.5 and zz > 0
+            surface[i, j] = s
+            r[i, j] = zz * np.sqrt(one + x * x + y * y)
+            near[i, j] = np.float32(0.0) if (s or zz <= 0) else vals[i, j, 2]
+    return r, surface, near

@@ -25,8 +25,15 @@ import numpy as np
 import OpenImageIO as oiio
 
 from pipeline.medium.fall_off import log_fall_off_at
-from pipeline.restore._kernels import luminance
-from pipeline.restore.dewater import detail_covariance, dewater, local_misfit, noise_and_detail, prior_weights
+from pipeline.restore._kernels import calibration_sums, luminance, surface_range
+from pipeline.restore.dewater import (
+    _k,
+    detail_covariance,
+    dewater,
+    local_misfit,
+    noise_and_detail,
+    prior_weights,
+)
 from pipeline.restore.files import BandReader, BandWriter, output_spec, restored_path
 from pipeline.restore.guided import (
     DEFAULT_EPS,
@@ -139,6 +146,11 @@ class FrameRestorer:
             [np.broadcast_to(m.k_A, (*z.shape, 3)), np.broadcast_to(m.k_B, (*z.shape, 3))], -1), np.float32)
         self.jmap = None if view.J is None else np.ascontiguousarray(
             fill_invalid(np.asarray(view.J, np.float64), ok), np.float32)  # [h, w, 3], no holes to bleed in
+        # every map stacked [h, w, 3 (+3 J) (+6 k)]: one sampling pass per band gathers them all (the same
+        # bilinear weights per channel, so the same values as sampling each alone; two passes took ~1/5 of a
+        # 27 MP frame's time)
+        self.all_maps = np.ascontiguousarray(np.concatenate(
+            [x for x in (self.maps, self.jmap, self.kmaps) if x is not None], -1), np.float32)
         self.lam2: np.ndarray | None = None  # the prior's weight per channel (calibrate); None: its floor
         self.noise2: np.ndarray | None = None  # the photo's noise variance per channel (calibrate); None: 0
         self.detail2: np.ndarray | None = None  # what the model lacks, as a variance of J (calibrate); None: 0
@@ -174,19 +186,12 @@ class FrameRestorer:
             rows = self.neutral(rows_of(e0, e1), e0)
             scale, r, surface, k_A, k_B, prior, _ = self._geometry(rows, e0, y0, y1)
             st = -(-r.size // CALIBRATION_PIXELS)  # every st-th row of a large photo's band
-            x = rows[y0 - e0:y1 - e0:st].astype(np.float64) * scale
-            if self.opt.space == "linear":
-                x = srgb_to_linear(np.clip(x, 0, 1))
-            r, surface, prior = r[::st].astype(np.float64)[..., None], surface[::st], prior[::st]
-            k_A, k_B = (k[::st] if np.ndim(k) == 3 else k for k in (k_A, k_B))
-            A = np.exp(-np.clip(np.asarray(k_A, np.float64) * r, 0, 80))
-            B = m.B_inf * -np.expm1(-np.clip(np.asarray(k_B, np.float64) * r, 0, 80))
-            e = x - (prior * A + B)
-            both = surface[:, :-1] & surface[:, 1:]
-            sq += (e[surface] ** 2).sum(0)
-            lag += e[:, :-1][both].T @ e[:, 1:][both]
-            aa += A[surface].T @ A[surface]
-            n_sq, n_lag = n_sq + int(surface.sum()), n_lag + int(both.sum())
+            s_sq, s_lag, s_aa, c_sq, c_lag = calibration_sums(
+                np.ascontiguousarray(rows[y0 - e0:y1 - e0]), float(scale), np.ascontiguousarray(r, np.float32),
+                np.ascontiguousarray(surface), _k(k_A), _k(k_B), np.asarray(m.B_inf, np.float64).reshape(3),
+                self.opt.space == "linear", np.ascontiguousarray(prior, np.float32), int(st))
+            sq, lag, aa = sq + s_sq, lag + s_lag, aa + s_aa
+            n_sq, n_lag = n_sq + c_sq, n_lag + c_lag
         if n_lag < 100:
             return None
         lag, aa = lag / n_lag, aa / n_sq
@@ -226,22 +231,21 @@ class FrameRestorer:
         e1 = e0 + rows.shape[0]
         scale = 1.0 / np.iinfo(rows.dtype).max if np.issubdtype(rows.dtype, np.integer) else 1.0
         xn, yn = self.grid.rays(e0, e1)
-        vals, inside = sample_maps(self.maps, xn, yn, self.view.camera)
+        vals, inside = sample_maps(self.all_maps, xn, yn, self.view.camera)  # [m, W, 3 (+3) (+6)]
         z = vals[..., 0]
         if self.radius > 0:
             z = fast_guided_filter(luminance(np.ascontiguousarray(rows), scale), z, self.radius, self.opt.eps,
                                    self.s)
         c = slice(y0 - e0, y1 - e0)
-        xc, yc, z = xn[c], yn[c], z[c]
-        surface = inside[c] & (vals[c, :, 1] >= 0.5) & (z > 0)
-        r = z * np.sqrt(1.0 + xc * xc + yc * yc)
+        r, surface, near = surface_range(np.ascontiguousarray(z[c], np.float32), xn[c], yn[c], inside[c], vals[c])
         m = self.view.medium
         k_A, k_B = m.k_A, m.k_B
+        at = 3
+        prior = None
+        if self.jmap is not None:
+            prior, at = np.ascontiguousarray(vals[c, :, 3:6]), 6  # copied once here, not in each kernel's call
         if self.kmaps is not None:
-            k, _ = sample_maps(self.kmaps, xc, yc, self.view.camera)
-            k_A, k_B = k[..., :3], k[..., 3:]
-        prior = None if self.jmap is None else sample_maps(self.jmap, xc, yc, self.view.camera)[0]
-        near = np.where(surface | (z <= 0), 0.0, vals[c, :, 2]).astype(np.float32)
+            k_A, k_B = vals[c, :, at:at + 3], vals[c, :, at + 3:at + 6]
         return scale, r, surface, k_A, k_B, prior, near
 
     def band(self, rows: np.ndarray, e0: int, y0: int, y1: int, out_max: int = 255
@@ -375,6 +379,36 @@ def restore_file(src: Path, lens: LensCamera, view: RenderedView, out_dir: Path,
     logger.info("restored %s: %.2f s, %d surface pixels, %d clipped", src.name, res.seconds, res.surface_pixels,
                 res.clipped)
     return res
+
+
+def surface_range_reference(z: np.ndarray, xn: np.ndarray, yn: np.ndarray, inside: np.ndarray,
+                            vals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slow twin of :func:`pipeline.restore._kernels.surface_range` (the numpy lines it replaced): (range r,
+    surface, the reach weight off the surface) of a band, [n, W] each."""
+    z, xn, yn = (np.asarray(a, np.float32) for a in (z, xn, yn))
+    surface = inside & (vals[..., 1] >= 0.5) & (z > 0)
+    r = z * np.sqrt(1.0 + xn * xn + yn * yn)
+    near = np.where(surface | (z <= 0), 0.0, vals[..., 2]).astype(np.float32)
+    return r, surface, near
+
+
+def calibration_sums_reference(x: np.ndarray, r: np.ndarray, surface: np.ndarray, k_A: np.ndarray, k_B: np.ndarray,
+                               B_inf: np.ndarray, prior: np.ndarray, st: int, space: str = "srgb") -> tuple:
+    """Slow twin of :func:`pipeline.restore._kernels.calibration_sums` (numpy float64; the restorer's code until
+    2026-12-01): x [n, W, 3] the photo in [0, 1] (float), r [n, W], surface [n, W] bool, k_A, k_B [3] or
+    [n, W, 3], prior [n, W, 3]; every ``st``-th row. Returns (Σ e², Σ lag products [3, 3], Σ A·Aᵀ [3, 3],
+    surface count, pair count)."""
+    x = np.asarray(x, np.float64)[::st]
+    if space == "linear":
+        x = srgb_to_linear(np.clip(x, 0, 1))
+    r, surface, prior = np.asarray(r, np.float64)[::st][..., None], surface[::st], prior[::st]
+    k_A, k_B = (k[::st] if np.ndim(k) == 3 else k for k in (k_A, k_B))
+    A = np.exp(-np.clip(np.asarray(k_A, np.float64) * r, 0, 80))
+    B = np.asarray(B_inf, np.float64) * -np.expm1(-np.clip(np.asarray(k_B, np.float64) * r, 0, 80))
+    e = x - (prior * A + B)
+    both = surface[:, :-1] & surface[:, 1:]
+    return ((e[surface] ** 2).sum(0), e[:, :-1][both].T @ e[:, 1:][both], A[surface].T @ A[surface],
+            int(surface.sum()), int(both.sum()))
 
 
 def misfit_radius(lens: LensCamera, camera: Camera, pad: int = 0) -> int:

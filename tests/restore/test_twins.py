@@ -80,3 +80,68 @@ def test_dewater_matches_reference_both_spaces_and_map_coefficients():
             _, c0, _ = dewater_reference(img, r, surf, m, space=space, prior=prior, lam2=lam2, noise2=noise2,
                                          detail_cov=cov)
             assert (cr2 <= c0 + 1e-12).all() and (cr2 < c0 - 1e-3).mean() > 0.3  # the misfit only lowers it
+
+
+def test_calibration_sums_match_reference():
+    """The calibration's fused kernel against the numpy code it replaced (both spaces, constant and per-pixel
+    coefficients, strided rows, holes in the surface that break the horizontal pairs)."""
+    from pipeline.restore._kernels import calibration_sums
+    from pipeline.restore.dewater import _k
+    from pipeline.restore.frame import calibration_sums_reference
+
+    rng = np.random.default_rng(7)
+    img = (rng.random((23, 31, 3)) * 255).astype(np.uint8)
+    r = rng.uniform(0.1, 12, (23, 31)).astype(np.float32)
+    surf = rng.random((23, 31)) > 0.25
+    prior = rng.random((23, 31, 3)).astype(np.float32)
+    B = np.array([0.1, 0.3, 0.35])
+    for kA, kB in (([0.3, 0.1, 0.05], [0.2, 0.1, 0.1]),
+                   (rng.random((23, 31, 3)).astype(np.float32), rng.random((23, 31, 3)).astype(np.float32))):
+        for space in ("srgb", "linear"):
+            for st in (1, 3):
+                got = calibration_sums(img, 1 / 255, r, surf, _k(kA), _k(kB), B, space == "linear", prior, st)
+                ref = calibration_sums_reference(img / 255, r, surf, np.asarray(kA, np.float32),
+                                                 np.asarray(kB, np.float32), B, prior, st, space)
+                assert got[3] == ref[3] > 100 and got[4] == ref[4] > 50
+                for a, b in zip(got[:3], ref[:3]):
+                    assert np.abs(a - b).max() < 1e-9 * max(1.0, np.abs(b).max())
+                assert np.abs(got[1]).max() > 1e-3  # the lag products are not all zero
+
+
+def test_dewater_reads_a_nan_misfit_as_zero():
+    """The kernel reads NaN in the misfit as 0 (it replaced a full-frame nan_to_num); +inf caps the error at 1."""
+    rng = np.random.default_rng(8)
+    img = rng.random((9, 11, 3)).astype(np.float32)
+    r = rng.uniform(0.5, 8, (9, 11)).astype(np.float32)
+    surf = np.ones((9, 11), bool)
+    prior = rng.random((9, 11, 3)).astype(np.float32)
+    mis = rng.uniform(0, 0.02, (9, 11, 3)).astype(np.float32)
+    kw = dict(prior=prior, lam2=np.array([0.05, 0.1, 0.2]), noise2=np.full(3, 1e-4), detail2=np.full(3, 1e-3))
+    B, kA, kB = np.array([0.1, 0.2, 0.3]), np.array([0.3, 0.1, 0.05]), np.array([0.2, 0.1, 0.1])
+    bad, zero = mis.copy(), mis.copy()
+    bad[2, 3, 1], zero[2, 3, 1] = np.nan, 0.0
+    _, c_bad, _ = dewater(img, r, surf, kA, kB, B, misfit=bad, **kw)
+    _, c_zero, _ = dewater(img, r, surf, kA, kB, B, misfit=zero, **kw)
+    _, c_mis, _ = dewater(img, r, surf, kA, kB, B, misfit=mis, **kw)
+    assert np.isfinite(c_bad).all() and (c_bad == c_zero).all() and c_mis[2, 3] < c_zero[2, 3]
+    bad[2, 3, 1] = np.inf
+    _, c_inf, _ = dewater(img, r, surf, kA, kB, B, misfit=bad, **kw)
+    others = np.arange(99) != 2 * 11 + 3
+    assert 0 < c_inf[2, 3] < 0.1 and (c_inf.ravel()[others] == c_mis.ravel()[others]).all()
+
+
+def test_surface_range_matches_reference():
+    from pipeline.restore._kernels import surface_range
+    from pipeline.restore.frame import surface_range_reference
+
+    rng = np.random.default_rng(9)
+    z = rng.uniform(-1, 5, (17, 23)).astype(np.float32)
+    z[3, 4] = np.nan
+    xn, yn = (rng.uniform(-0.7, 0.7, (17, 23)).astype(np.float32) for _ in range(2))
+    inside = rng.random((17, 23)) > 0.1
+    vals = rng.random((17, 23, 6)).astype(np.float32)
+    got, ref = surface_range(z, xn, yn, inside, vals), surface_range_reference(z, xn, yn, inside, vals)
+    assert got[1].any() and (~got[1]).any() and (got[2] > 0).any()
+    for a, b in zip(got, ref):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)  # the same float32 arithmetic, NaN where numpy has it

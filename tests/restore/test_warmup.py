@@ -89,10 +89,12 @@ def test_warmup_leaves_nothing_for_a_restore_to_compile():
     # not vacuous: every kernel a job calls was compiled (or loaded), dewater for each (photo, J) dtype pair
     used = set(before) - {"guided_apply", "_srgb_to_linear", "_linear_to_srgb", "_gain_matrix", "_optical_depths"}
     kernels = {"interp_grid_rows", "sample_bilinear", "box_mean", "guided_stats", "guided_coeffs", "luminance",
-               "dewater", "misfit_terms", "misfit_upsample", "block_mean", "upsample_apply"}
+               "dewater", "misfit_terms", "misfit_upsample", "block_mean", "upsample_apply", "calibration_sums",
+               "surface_range"}
     assert used == kernels, sorted(before)
     assert all(before[n] for n in used), before
     assert len(before["dewater"]) == 4 and len(before["luminance"]) == 2, before
+    assert len(before["calibration_sums"]) == 2, before  # the photo's rows as read: uint8 or uint16
 
 
 def test_check_notices_a_missing_case():
