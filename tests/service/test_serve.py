@@ -127,17 +127,22 @@ def test_serve_reads_the_environment_and_stops_its_children_on_sigterm(tmp_path:
         took = time.monotonic() - t0
         assert took < STOP_BOUND_S, took
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=10)
-        for c in children:  # only on failure: processes this test started, by pid
-            if _alive(c):
-                try:
-                    os.killpg(c, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-        delete_prefix(client, prefix)
-        client.close()
+        _clean_up(proc, children, client, prefix)
+
+
+def _clean_up(proc: subprocess.Popen, pids, client, prefix: str) -> None:
+    """Kill serve and (only left on a failure) the process groups this test started, by pid; drop its Redis keys."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+    for pid in pids:
+        if _alive(pid):
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    delete_prefix(client, prefix)
+    client.close()
 
 
 def _serve_env(prefix: str, data: Path, **extra: str) -> dict[str, str]:
@@ -212,17 +217,7 @@ def test_serve_restarts_a_killed_worker_and_the_job_resumes(tmp_path: Path, scen
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=STOP_BOUND_S)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=10)
-        for pid in started:  # only on failure: processes this test started, by pid
-            if _alive(pid):
-                try:
-                    os.killpg(pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-        delete_prefix(client, prefix)
-        client.close()
+        _clean_up(proc, started, client, prefix)
 
 
 def test_a_child_that_keeps_dying_makes_serve_give_up() -> None:
