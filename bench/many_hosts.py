@@ -26,7 +26,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -40,17 +39,12 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests" / "service"))  # the tests' SeaweedFS launcher (object_server.py)
+from svc_helpers import free_port  # noqa: E402  (found through the path above)
 
 REDIS_URL = "redis://127.0.0.1:6379/15"
 KEY = "bench-key-0123456789abcdef"
 PLY = JobLayout(Path("job")).relative(JobLayout(Path("job")).ply)
 STAGES = ("ingest", "sfm", "classify", "train", "evaluate", "restore", "survey", "export")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def scene_zip(out: Path, views: int) -> bytes:
